@@ -1,0 +1,311 @@
+"""What to simulate: the Instance record, the benchmark splits (SPEC 7) and instance files (SPEC 4).
+
+No ROS here. Everything random about an instance (pose, drop height, velocity, cameras,
+particle sampling) comes from numpy Generator(PCG64(seed)), so an instance is reproduced
+exactly from its fields. Benchmark seeds come from numpy SeedSequence over stable integer
+codes (never Python's salted hash()), so benchmarks are identical on every machine.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import materials
+from .render import Camera, sample_cameras
+
+SPLITS = ("train", "seen", "unseen", "custom")
+BENCHMARK_SPLITS = ("train", "seen", "unseen")
+
+# The normalised mesh ([-0.5, 0.5]^3) is scaled by SCALE into the unit-cube domain. At particle
+# spacing dx/2 = 1/64 this gives ~3k (thin shapes) to ~11k (box) particles.
+SCALE = 0.35
+PARTICLE_SPACING = 0.5 / materials.GRID_RESOLUTION
+# Ground and walls: the solver's boundary is 3 grid cells thick on every side.
+BOUNDARY = 3.0 / materials.GRID_RESOLUTION
+WALL_MARGIN = 0.02  # keep the object this far from the walls at t = 0
+DROP_GAP = (0.05, 0.25)  # object's lowest point above the ground at t = 0
+XY_JITTER = 0.1  # centre of the object within +-XY_JITTER of the domain's middle
+HORIZONTAL_SPEED = 0.2  # m/s, largest initial horizontal speed
+DOWNWARD_SPEED = (0.0, 0.5)  # m/s, initial downward speed
+
+TRAIN_VIEWS = 4
+EVALUATION_VIEWS = 1
+
+_SPLIT_CODES = {name: code for code, name in enumerate(SPLITS)}
+_FAMILY_CODES = {name: code for code, name in enumerate(materials.FAMILIES)}
+_PARAMETER_STREAM = 1  # second PCG64 stream of a seed, for benchmark parameters
+
+
+def _random_quaternion(rng: np.random.Generator) -> tuple[float, float, float, float]:
+    """Uniformly distributed rotation (Shoemake 1992), as (x, y, z, w)."""
+    u1, u2, u3 = rng.uniform(0.0, 1.0, size=3)
+    a, b = math.sqrt(1.0 - u1), math.sqrt(u1)
+    return (
+        a * math.sin(2 * math.pi * u2),
+        a * math.cos(2 * math.pi * u2),
+        b * math.sin(2 * math.pi * u3),
+        b * math.cos(2 * math.pi * u3),
+    )
+
+
+def quaternion_matrix(q) -> np.ndarray:
+    """Rotation matrix (3, 3) of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+@functools.lru_cache(maxsize=None)
+def _mesh_vertices(shape: str) -> np.ndarray:
+    from .shapes import load_mesh
+
+    return np.asarray(load_mesh(shape).vertices, dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=1)
+def shape_names() -> frozenset[str]:
+    from .shapes import list_shapes
+
+    return frozenset(info.name for info in list_shapes())
+
+
+@dataclass
+class Instance:
+    """One episode to simulate. Fields after `views` are drawn from `seed` at construction."""
+
+    episode_id: str
+    split: str  # train | seen | unseen | custom
+    shape: str
+    material: str
+    parameters: dict[str, float]  # SI units, radians; the family's parameters incl. fixed ones
+    seed: int
+    views: int = 1
+    orientation: tuple[float, float, float, float] = field(init=False)  # unit quaternion (x, y, z, w)
+    drop_gap: float = field(init=False)  # lowest point above the ground at t = 0
+    jitter: tuple[float, float] = field(init=False)  # x/y offset of the object's centre from the middle
+    velocity: tuple[float, float, float] = field(init=False)  # initial velocity (m/s)
+    camera_seed: int = field(init=False)
+    sampling_seed: int = field(init=False)  # particle sampling and FPS start
+
+    def __post_init__(self):
+        rng = np.random.Generator(np.random.PCG64(self.seed))
+        self.orientation = _random_quaternion(rng)
+        self.drop_gap = float(rng.uniform(*DROP_GAP))
+        self.jitter = tuple(float(v) for v in rng.uniform(-XY_JITTER, XY_JITTER, size=2))
+        heading = rng.uniform(0.0, 2.0 * math.pi)
+        speed = HORIZONTAL_SPEED * math.sqrt(rng.uniform(0.0, 1.0))  # uniform over the disc
+        down = rng.uniform(*DOWNWARD_SPEED)
+        self.velocity = (speed * math.cos(heading), speed * math.sin(heading), -down)
+        self.camera_seed = int(rng.integers(0, 2**63))
+        self.sampling_seed = int(rng.integers(0, 2**63))
+
+    def rotation(self) -> np.ndarray:
+        return quaternion_matrix(self.orientation)
+
+    def position(self) -> np.ndarray:
+        """World position of the scaled mesh's origin at t = 0 (loads the shape's mesh)."""
+        posed = SCALE * _mesh_vertices(self.shape) @ self.rotation().T
+        low, high = posed.min(axis=0), posed.max(axis=0)
+        wall_low, wall_high = BOUNDARY + WALL_MARGIN, 1.0 - BOUNDARY - WALL_MARGIN
+        centre = 0.5 + np.array(self.jitter) - 0.5 * (low[:2] + high[:2])
+        xy = np.clip(centre, wall_low - low[:2], wall_high - high[:2])
+        return np.array([xy[0], xy[1], BOUNDARY + self.drop_gap - low[2]])
+
+    def pose(self) -> np.ndarray:
+        """(4, 4) transform from the scaled mesh frame to the world at t = 0."""
+        transform = np.eye(4)
+        transform[:3, :3] = self.rotation()
+        transform[:3, 3] = self.position()
+        return transform
+
+    def cameras(self, views: int | None = None) -> list[Camera]:
+        """The instance's cameras (128x128); the first k views do not depend on how many are asked."""
+        rng = np.random.Generator(np.random.PCG64(self.camera_seed))
+        return sample_cameras(rng, self.views if views is None else views)
+
+
+# ---------------------------------------------------------------------------- benchmark
+
+
+@dataclass(frozen=True)
+class BenchmarkSize:
+    """Instances per (shape, family) for each split, and how many shapes of each split list."""
+
+    per_pair: dict[str, int]
+    shapes: int | None  # first n shapes of each split list; None = all
+
+
+# paper: SPEC 7 (9000 / 900 / 900). small: 360 / 90 / 90 episodes, sized so that simulating
+# and training the student fit on 2 CPU cores in about an hour. tiny: 6 episodes per split, CI.
+BENCHMARK_SIZES = {
+    "paper": BenchmarkSize({"train": 100, "seen": 10, "unseen": 10}, None),
+    "small": BenchmarkSize({"train": 4, "seen": 1, "unseen": 1}, None),
+    "tiny": BenchmarkSize({"train": 1, "seen": 1, "unseen": 1}, 2),
+}
+
+
+def instance_seed(split: str, shape: str, family: str, index: int, base_seed: int = 0) -> int:
+    """Stable 63-bit seed of benchmark instance `index` of (split, shape, family)."""
+    entropy = [base_seed, _SPLIT_CODES[split], zlib.crc32(shape.encode()), _FAMILY_CODES[family], index]
+    low, high = np.random.SeedSequence(entropy).generate_state(2, dtype=np.uint32)
+    return (int(high) << 32 | int(low)) & (2**63 - 1)
+
+
+def benchmark_shapes(split: str, size: str) -> list[str]:
+    """Shapes of a benchmark split: train shapes for train/seen, unseen shapes for unseen."""
+    from .shapes import list_shapes
+
+    names = [info.name for info in list_shapes("unseen" if split == "unseen" else "train")]
+    limit = BENCHMARK_SIZES[size].shapes
+    return names if limit is None else names[:limit]
+
+
+def benchmark(size: str, split: str, base_seed: int = 0) -> list[Instance]:
+    """The instances of a benchmark split, in a fixed order (shape, family, index)."""
+    if size not in BENCHMARK_SIZES:
+        raise ValueError(f"unknown benchmark size {size!r}; expected one of {sorted(BENCHMARK_SIZES)}")
+    if split not in BENCHMARK_SPLITS:
+        raise ValueError(f"unknown benchmark split {split!r}; expected one of {BENCHMARK_SPLITS}")
+    count = BENCHMARK_SIZES[size].per_pair[split]
+    views = TRAIN_VIEWS if split == "train" else EVALUATION_VIEWS
+    out = []
+    for shape in benchmark_shapes(split, size):
+        for family in materials.FAMILIES:
+            for index in range(count):
+                seed = instance_seed(split, shape, family, index, base_seed)
+                rng = np.random.Generator(np.random.PCG64([seed, _PARAMETER_STREAM]))
+                out.append(
+                    Instance(
+                        episode_id=f"{split}-{shape}-{family}-{index:04d}",
+                        split=split,
+                        shape=shape,
+                        material=family,
+                        parameters=materials.sample_parameters(family, rng),
+                        seed=seed,
+                        views=views,
+                    )
+                )
+    return out
+
+
+# ------------------------------------------------------------------------ instance files
+
+_REQUIRED_FIELDS = ("shape", "material", "parameters", "seed")
+_OPTIONAL_FIELDS = ("views", "episode_id", "split")
+# Relative slack on range checks so that values written with a few digits at a range's edge pass.
+_RANGE_SLACK = 1e-9
+
+
+def _validate_parameters(family: str, given, where: str) -> dict[str, float]:
+    if not isinstance(given, dict):
+        raise ValueError(f"{where}: field 'parameters' must be a mapping of name -> value, got {given!r}")
+    ranges = materials.FAMILY_RANGES[family]
+    out = {}
+    for name, value in given.items():
+        if name not in materials.PARAMETER_NAMES:
+            raise ValueError(
+                f"{where}: field 'parameters.{name}': unknown parameter; expected names from {materials.PARAMETER_NAMES}"
+            )
+        if name not in ranges:
+            raise ValueError(
+                f"{where}: field 'parameters.{name}': {family} has no such parameter; "
+                f"it takes {list(materials.FAMILY_PARAMETERS[family])}"
+            )
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ValueError(f"{where}: field 'parameters.{name}': expected a finite number, got {value!r}")
+        spec = ranges[name]
+        if isinstance(spec, tuple):
+            low, high, _ = spec
+            if not low * (1 - _RANGE_SLACK) <= value <= high * (1 + _RANGE_SLACK):
+                unit = " (radians)" if name == "friction_angle" else ""
+                raise ValueError(f"{where}: field 'parameters.{name}': {value} is outside {family}'s range [{low}, {high}]{unit}")
+        elif not math.isclose(value, spec, rel_tol=1e-6):
+            raise ValueError(f"{where}: field 'parameters.{name}': {family} fixes it at {spec}, got {value}")
+        out[name] = float(value)
+    missing = [n for n in materials.SAMPLED_PARAMETERS[family] if n not in out]
+    if missing:
+        raise ValueError(f"{where}: field 'parameters': missing {missing} (SI units, radians for friction_angle)")
+    return materials.full_parameters(family, out)
+
+
+def _instance_from_entry(entry, index: int, source: str) -> Instance:
+    where = f"{source}: entry {index}"
+    if not isinstance(entry, dict):
+        raise ValueError(f"{where}: expected a mapping with fields {list(_REQUIRED_FIELDS)}, got {entry!r}")
+    if "shape" in entry:
+        where += f" ({entry['shape']})"
+    unknown = set(entry) - set(_REQUIRED_FIELDS) - set(_OPTIONAL_FIELDS)
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {list(_REQUIRED_FIELDS + _OPTIONAL_FIELDS)}")
+    for name in _REQUIRED_FIELDS:
+        if name not in entry:
+            raise ValueError(f"{where}: missing field '{name}'")
+    shape, material = entry["shape"], entry["material"]
+    if shape not in shape_names():
+        raise ValueError(f"{where}: field 'shape': unknown shape {shape!r}; `generate --list-shapes` lists them")
+    if material not in materials.FAMILIES:
+        raise ValueError(f"{where}: field 'material': unknown material {material!r}; expected one of {materials.FAMILIES}")
+    seed = entry["seed"]
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**64:
+        raise ValueError(f"{where}: field 'seed': expected an integer in [0, 2^64), got {seed!r}")
+    views = entry.get("views", EVALUATION_VIEWS)
+    if isinstance(views, bool) or not isinstance(views, int) or views < 1:
+        raise ValueError(f"{where}: field 'views': expected a positive integer, got {views!r}")
+    split = entry.get("split", "custom")
+    if split not in SPLITS:
+        raise ValueError(f"{where}: field 'split': expected one of {SPLITS}, got {split!r}")
+    episode_id = entry.get("episode_id", f"{split}-{shape}-{material}-{index:04d}")
+    if not isinstance(episode_id, str) or not episode_id:
+        raise ValueError(f"{where}: field 'episode_id': expected a non-empty string, got {episode_id!r}")
+    return Instance(
+        episode_id=episode_id,
+        split=split,
+        shape=shape,
+        material=material,
+        parameters=_validate_parameters(material, entry["parameters"], where),
+        seed=seed,
+        views=views,
+    )
+
+
+def load_instance_file(path: str | Path) -> list[Instance]:
+    """Instances of a YAML (.yaml/.yml) or JSON (.json) file: a list of entries (SPEC 4).
+
+    Raises ValueError naming the entry and field of the first problem found.
+    """
+    path = Path(path)
+    text = path.read_text()
+    if path.suffix.lower() == ".json":
+        try:
+            entries = json.loads(text)
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{path}: not valid JSON: {error}") from None
+    elif path.suffix.lower() in (".yaml", ".yml"):
+        import yaml
+
+        try:
+            entries = yaml.safe_load(text)
+        except yaml.YAMLError as error:
+            raise ValueError(f"{path}: not valid YAML: {error}") from None
+    else:
+        raise ValueError(f"{path}: instance files end in .yaml, .yml or .json")
+    if not isinstance(entries, list) or not entries:
+        raise ValueError(f"{path}: expected a non-empty list of entries (shape, material, parameters, seed)")
+    instances = [_instance_from_entry(entry, i, str(path)) for i, entry in enumerate(entries)]
+    ids = [instance.episode_id for instance in instances]
+    duplicates = sorted({i for i in ids if ids.count(i) > 1})
+    if duplicates:
+        raise ValueError(f"{path}: duplicate episode_id(s) {duplicates}")
+    return instances
