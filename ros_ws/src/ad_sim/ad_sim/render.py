@@ -261,15 +261,19 @@ class RenderJob:
     projection: np.ndarray  # (3, 4) world -> pixel at the full resolution
 
 
-def downsample(full: np.ndarray, factor: int = DOWNSAMPLE, device: str = "cpu") -> np.ndarray:
-    """Area-downsample binary masks (G, H, W) by `factor` (block mean, threshold 0.5) -> {0, 255}."""
+def _downsample_device(full: wp.array, factor: int, device: str) -> wp.array:
     count, height, width = full.shape
     if height % factor or width % factor:
         raise ValueError(f"mask size {height}x{width} is not a multiple of {factor}")
-    source = wp.array(np.ascontiguousarray(full, dtype=np.uint8), dtype=wp.uint8, device=device)
     out = wp.empty((count, height // factor, width // factor), dtype=wp.uint8, device=device)
-    wp.launch(_downsample_kernel, dim=out.shape, inputs=[source, factor, out], device=device)
-    return out.numpy()
+    wp.launch(_downsample_kernel, dim=out.shape, inputs=[full, factor, out], device=device)
+    return out
+
+
+def downsample(full: np.ndarray, factor: int = DOWNSAMPLE, device: str = "cpu") -> np.ndarray:
+    """Area-downsample binary masks (G, H, W) by `factor` (block mean, threshold 0.5) -> {0, 255}."""
+    source = wp.array(np.ascontiguousarray(full, dtype=np.uint8), dtype=wp.uint8, device=device)
+    return _downsample_device(source, factor, device).numpy()
 
 
 def render_masks(
@@ -321,9 +325,7 @@ def render_masks(
             ],
             device=device,
         )
-        chunk_small = wp.empty((len(chunk), small, small), dtype=wp.uint8, device=device)
-        wp.launch(_downsample_kernel, dim=chunk_small.shape, inputs=[chunk_full, factor, chunk_small], device=device)
-        masks[first : first + len(chunk)] = chunk_small.numpy()
+        masks[first : first + len(chunk)] = _downsample_device(chunk_full, factor, device).numpy()
         if full:
             masks_full[first : first + len(chunk)] = chunk_full.numpy()
     return masks, masks_full

@@ -1,0 +1,147 @@
+"""Rasteriser against analytic references, cameras, farthest point sampling, vertex binding."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from ad_sim import render
+from ad_sim.render import Camera, RenderJob, intrinsics, look_at
+
+FULL = render.FULL_SIZE
+
+
+def head_on_camera(distance: float, half_fov_deg: float = 20.0) -> Camera:
+    """Camera on the -y side of (0.5, 0.5, 0.3), looking along +y."""
+    target = np.array([0.5, 0.5, 0.3])
+    pose = look_at(target - [0.0, distance, 0.0], target)
+    return Camera(K=intrinsics(FULL, FULL, np.deg2rad(half_fov_deg)), width=FULL, height=FULL, pose=pose)
+
+
+def test_sphere_mask_matches_analytic_circle():
+    radius, distance = 0.2, 2.0
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    camera = head_on_camera(distance)
+    vertices = sphere.vertices + [0.5, 0.5, 0.3]
+    small, full = render.render_masks([vertices], [sphere.faces], [RenderJob(0, 0, camera.projection())], full=True)
+    # The silhouette of a sphere centred on the optical axis is a circle of radius f tan(asin(r / d)).
+    circle = camera.K[0, 0] * np.tan(np.arcsin(radius / distance))
+    covered = full[0] > 0
+    assert covered.sum() == pytest.approx(np.pi * circle**2, rel=0.01)
+    ys, xs = np.nonzero(covered)
+    assert xs.mean() == pytest.approx(camera.K[0, 2], abs=0.05)
+    assert ys.mean() == pytest.approx(camera.K[1, 2], abs=0.05)
+    assert set(np.unique(full)) == {0, 255} and set(np.unique(small)) == {0, 255}
+    assert small.shape == (1, render.MASK_SIZE, render.MASK_SIZE)
+    assert (small[0] > 0).sum() * render.DOWNSAMPLE**2 == pytest.approx(covered.sum(), rel=0.02)
+
+
+def test_box_seen_head_on_covers_exactly_its_front_face():
+    side, distance = 0.3, 1.7
+    box = trimesh.creation.box(extents=[side] * 3)
+    camera = head_on_camera(distance)
+    vertices = box.vertices + [0.5, 0.5, 0.3]
+    _, full = render.render_masks([vertices], [box.faces], [RenderJob(0, 0, camera.projection())], full=True)
+    # Under perspective the front face (nearest) bounds the silhouette; count the pixel centres inside it.
+    half = 0.5 * camera.K[0, 0] * side / (distance - side / 2)
+    centre = camera.K[0, 2]
+    inside = np.arange(FULL)
+    inside = inside[(inside >= centre - half) & (inside <= centre + half)]
+    expected = np.zeros((FULL, FULL), dtype=bool)
+    expected[inside[0] : inside[-1] + 1, inside[0] : inside[-1] + 1] = True
+    np.testing.assert_array_equal(full[0] > 0, expected)
+
+
+def test_batched_render_equals_one_by_one():
+    rng = np.random.default_rng(3)
+    meshes = [trimesh.creation.icosphere(subdivisions=2, radius=0.15), trimesh.creation.box(extents=[0.2, 0.3, 0.1])]
+    vertex_sets = [m.vertices + rng.uniform(0.3, 0.7, size=3) for m in meshes for _ in range(2)]
+    face_sets = [m.faces for m in meshes]
+    cameras = render.sample_cameras(rng, 3, FULL, FULL)
+    jobs = [RenderJob(v, v // 2, c.projection()) for v in range(4) for c in cameras]
+    batched, batched_full = render.render_masks(vertex_sets, face_sets, jobs, full=True)
+    for g, job in enumerate(jobs):
+        single, single_full = render.render_masks([vertex_sets[job.vertex_set]], [face_sets[job.face_set]], [RenderJob(0, 0, job.projection)], full=True)
+        np.testing.assert_array_equal(batched[g], single[0])
+        np.testing.assert_array_equal(batched_full[g], single_full[0])
+    assert all(m.any() for m in batched)
+
+
+def test_downsample_is_block_mean_threshold_half():
+    rng = np.random.default_rng(0)
+    full = (rng.uniform(size=(3, 32, 64)) < 0.5).astype(np.uint8) * 255
+    small = render.downsample(full, factor=4)
+    blocks = (full > 0).reshape(3, 8, 4, 16, 4).mean(axis=(2, 4))
+    np.testing.assert_array_equal(small, np.where(blocks >= 0.5, 255, 0))
+
+
+def test_resized_camera_keeps_pixel_edges():
+    camera = render.sample_cameras(np.random.default_rng(1), 1)[0]
+    big = camera.resized(FULL, FULL)
+    points = np.random.default_rng(2).uniform(0.2, 0.8, size=(10, 3))
+    # Pixel edges scale by 4, centres sit half a pixel inside: u_512 = 4 u_128 + 1.5.
+    np.testing.assert_allclose(big.project(points), 4 * camera.project(points) + 1.5, atol=1e-9)
+
+
+def test_sampled_cameras_look_at_the_drop_region():
+    rng = np.random.default_rng(5)
+    cameras = render.sample_cameras(rng, 20)
+    prefix = render.sample_cameras(np.random.default_rng(5), 3)
+    for a, b in zip(cameras, prefix):
+        np.testing.assert_array_equal(a.pose, b.pose)
+    target = np.array(render.CAMERA_TARGET)
+    directions = np.random.default_rng(6).normal(size=(200, 3))
+    sphere = target + 0.98 * render.VIEW_RADIUS * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    for camera in cameras:
+        np.testing.assert_allclose(camera.pose[:3, :3] @ camera.pose[:3, :3].T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(camera.project(target[None]), [[63.5, 63.5]], atol=1e-9)
+        pixels = camera.project(sphere)
+        assert np.all((pixels >= -0.5) & (pixels <= 127.5))
+        eye = camera.pose[:3, 3]
+        elevation = np.degrees(np.arcsin((eye - target)[2] / np.linalg.norm(eye - target)))
+        assert render.CAMERA_ELEVATION_DEG[0] <= elevation <= render.CAMERA_ELEVATION_DEG[1]
+
+
+def test_farthest_point_sampling_spreads_points():
+    points = np.random.default_rng(0).uniform(size=(5000, 3))
+    chosen = render.farthest_point_sampling(points, 256, start=17)
+    assert chosen[0] == 17 and len(np.unique(chosen)) == 256
+    np.testing.assert_array_equal(chosen, render.farthest_point_sampling(points, 256, start=17))
+    selected = points[chosen]
+    gaps = np.linalg.norm(selected[:, None] - selected[None], axis=-1)
+    separation = gaps[~np.eye(256, dtype=bool)].min()
+    covering = np.linalg.norm(points[:, None] - selected[None], axis=-1).min(axis=1).max()
+    # Greedy FPS: every point lies closer to the selection than any two selected points lie to each other.
+    assert covering <= separation + 1e-12
+    random_subset = points[np.random.default_rng(1).choice(5000, 256, replace=False)]
+    random_gaps = np.linalg.norm(random_subset[:, None] - random_subset[None], axis=-1)
+    assert separation > 3 * random_gaps[~np.eye(256, dtype=bool)].min()
+    with pytest.raises(ValueError, match="at least 256"):
+        render.farthest_point_sampling(points[:100], 256)
+
+
+def test_vertex_advection_follows_particles():
+    rng = np.random.default_rng(4)
+    particles = rng.uniform(0.3, 0.7, size=(500, 3))
+    vertices = rng.uniform(0.3, 0.7, size=(60, 3))
+    binding = render.bind_vertices(vertices, particles)
+    np.testing.assert_allclose(binding.weights.sum(axis=1), 1.0)
+    nearest = np.argsort(np.linalg.norm(vertices[:, None] - particles[None], axis=-1), axis=1)[:, : render.BIND_NEIGHBOURS]
+    np.testing.assert_array_equal(np.sort(binding.indices, axis=1), np.sort(nearest, axis=1))
+
+    # F = I and particles at rest: vertices stay where they are.
+    frames = 3
+    still = np.broadcast_to(particles, (frames, 500, 3))
+    identity = np.broadcast_to(np.eye(3), (frames, 500, 3, 3))
+    np.testing.assert_allclose(render.advect_vertices(binding, still, identity), np.broadcast_to(vertices, (frames, 60, 3)), atol=1e-6)
+
+    # A rigid motion x -> R x + t with F = R moves the vertices rigidly too.
+    angle = 0.7
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    t = np.array([0.05, -0.02, 0.1])
+    moved = render.advect_vertices(binding, (particles @ R.T + t)[None], R[None, None].repeat(500, axis=1))
+    np.testing.assert_allclose(moved[0], vertices @ R.T + t, atol=1e-6)
+
+    # Reindexing onto a recorded subset addresses the same particles.
+    rows = np.unique(np.r_[binding.indices.ravel(), [0, 1, 2]])
+    subset = render.advect_vertices(binding.reindexed(rows), still[:, rows], identity[:, rows])
+    np.testing.assert_allclose(subset, np.broadcast_to(vertices, (frames, 60, 3)), atol=1e-6)
