@@ -1,0 +1,406 @@
+"""Batched explicit MLS-MPM (APIC transfers, quadratic B-splines) in Warp, CPU and CUDA.
+
+Many scenes advance in the same kernel launches: particles of all scenes are concatenated with a
+particle -> scene index, every scene owns one 32^3 grid (arrays of shape (S, 32, 32, 32)) and its
+own material constants and time step. Each scene takes n_s = substeps_for(...) substeps per frame;
+the solver loops max(n_s) times per frame and a scene whose n_s is exhausted sits the remaining
+iterations out, so every scene lands exactly on the frame times. See docs/simulator.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from ad_sim.materials import (
+    DENSITY,
+    FAMILY_CODES,
+    FRAME_COUNT,
+    FRAME_INTERVAL,
+    GRAVITY,
+    GRID_RESOLUTION,
+    JELLY,
+    compose,
+    drucker_prager_alpha,
+    full_parameters,
+    kirchhoff_svd,
+    lame,
+    project_sigma,
+    svd,
+)
+
+DX = 1.0 / GRID_RESOLUTION
+BOUNDARY_CELLS = 3  # grid nodes within this many cells of a face carry the boundary conditions
+COURANT = 0.45  # dt = COURANT * dx / (wave speed + motion speed)
+GROUND_FRICTION = 0.5  # Coulomb coefficient between material and ground (z = 0 plane)
+# Bound on the speed a dropped object reaches (free fall through the whole unit cube); added to
+# the elastic wave speed so that soft materials also take small enough steps while falling.
+FALL_SPEED = math.sqrt(2.0 * GRAVITY * 1.0)
+# Particles are kept inside [CLAMP_LO, CLAMP_HI]^3 so that their 3x3x3 stencil stays on the grid.
+CLAMP_LO = 2.0 * DX
+CLAMP_HI = 1.0 - 2.0 * DX
+
+_GRID = wp.constant(GRID_RESOLUTION)
+_INV_DX = wp.constant(float(GRID_RESOLUTION))
+_DX = wp.constant(DX)
+_BOUND = wp.constant(BOUNDARY_CELLS)
+_GROUND_FRICTION = wp.constant(GROUND_FRICTION)
+_CLAMP_LO = wp.constant(CLAMP_LO)
+_CLAMP_HI = wp.constant(CLAMP_HI)
+
+
+@dataclass
+class Scene:
+    """One object to simulate.
+
+    positions: (N, 3) float32 particle positions in world coordinates inside the unit cube (z up).
+    velocity: (3,) initial velocity of every particle (m/s).
+    family: one of materials.FAMILIES; parameters: SI values (radians for friction_angle), fixed
+    ones (sand's E, nu) may be omitted. particle_volume: m^3 per particle.
+    record: particle indices whose position and F are recorded each frame (None: all).
+    """
+
+    positions: np.ndarray
+    velocity: np.ndarray
+    family: str
+    parameters: dict
+    particle_volume: float
+    record: np.ndarray | None = None
+    density: float = DENSITY
+
+
+@dataclass
+class SceneResult:
+    """Recorded trajectory of one scene: frame 0 is the initial state, T = frame_count."""
+
+    positions: np.ndarray  # (T, R, 3) float32
+    deformation: np.ndarray  # (T, R, 3, 3) float32, row-major F
+    substeps_per_frame: int
+    all_positions_final: np.ndarray  # (N, 3) float32
+    all_velocities_final: np.ndarray = field(repr=False)  # (N, 3) float32
+
+
+def substeps_for(
+    family: str,
+    parameters: dict,
+    density: float = DENSITY,
+    speed: float = 0.0,
+    frame_interval: float = FRAME_INTERVAL,
+) -> int:
+    """Substeps per frame: n = ceil(frame_interval / dt), dt = COURANT * dx / (c + FALL_SPEED + speed).
+
+    c = sqrt((lambda + 2 mu) / rho) is the P-wave speed; `speed` is the initial speed of the object.
+    """
+    p = full_parameters(family, parameters)
+    mu, lam = lame(p["youngs_modulus"], p["poissons_ratio"])
+    wave = math.sqrt((lam + 2.0 * mu) / density)
+    dt = COURANT * DX / (wave + FALL_SPEED + speed)
+    return max(1, math.ceil(frame_interval / dt - 1e-9))
+
+
+def group_by_substeps(scenes: list[Scene], max_batch: int, frame_interval: float = FRAME_INTERVAL) -> list[list[int]]:
+    """Splits scene indices into batches of at most max_batch with similar substep counts.
+
+    A batch costs max(n_s) iterations, so sorting by n_s before chunking wastes the fewest.
+    Order within a batch and between batches follows increasing n_s (ties by index: deterministic).
+    """
+    if max_batch < 1:
+        raise ValueError("max_batch must be >= 1")
+    n = [_scene_substeps(s, frame_interval) for s in scenes]
+    order = sorted(range(len(scenes)), key=lambda i: (n[i], i))
+    return [order[i : i + max_batch] for i in range(0, len(order), max_batch)]
+
+
+def _scene_substeps(scene: Scene, frame_interval: float) -> int:
+    speed = float(np.linalg.norm(np.asarray(scene.velocity, dtype=np.float64)))
+    return substeps_for(scene.family, scene.parameters, scene.density, speed, frame_interval)
+
+
+@wp.func
+def bspline_weights(fx: wp.vec3):
+    """Quadratic B-spline weights: row o = offset o (0, 1, 2) of the stencil, column = axis."""
+    a = wp.vec3(1.5) - fx
+    b = fx - wp.vec3(1.0)
+    c = fx - wp.vec3(0.5)
+    w0 = 0.5 * wp.cw_mul(a, a)
+    w1 = wp.vec3(0.75) - wp.cw_mul(b, b)
+    w2 = 0.5 * wp.cw_mul(c, c)
+    return wp.mat33(w0[0], w0[1], w0[2], w1[0], w1[1], w1[2], w2[0], w2[1], w2[2])
+
+
+@wp.kernel
+def p2g(
+    iteration: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    stress: wp.array(dtype=wp.mat33),
+    scene: wp.array(dtype=wp.int32),
+    substeps: wp.array(dtype=wp.int32),
+    dt: wp.array(dtype=float),
+    mass: wp.array(dtype=float),
+    volume: wp.array(dtype=float),
+    grid_mv: wp.array4d(dtype=wp.vec3),
+    grid_m: wp.array4d(dtype=float),
+):
+    p = wp.tid()
+    s = scene[p]
+    if iteration >= substeps[s]:
+        return
+    m = mass[s]
+    # MLS-MPM: the stress force enters as an affine term, M_p^-1 = 4 / dx^2 for quadratic splines.
+    affine = (-dt[s] * volume[s] * 4.0 * _INV_DX * _INV_DX) * stress[p] + m * C[p]
+    mv = m * v[p]
+    xg = x[p] * _INV_DX
+    base = wp.vec3i(int(xg[0] - 0.5), int(xg[1] - 0.5), int(xg[2] - 0.5))
+    fx = xg - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    w = bspline_weights(fx)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                weight = w[i, 0] * w[j, 1] * w[k, 2]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * _DX
+                wp.atomic_add(grid_mv, s, base[0] + i, base[1] + j, base[2] + k, weight * (mv + affine * dpos))
+                wp.atomic_add(grid_m, s, base[0] + i, base[1] + j, base[2] + k, weight * m)
+
+
+@wp.kernel
+def grid_update(
+    iteration: int,
+    substeps: wp.array(dtype=wp.int32),
+    dt: wp.array(dtype=float),
+    gravity: float,
+    boundaries: int,
+    grid_mv: wp.array4d(dtype=wp.vec3),
+    grid_m: wp.array4d(dtype=float),
+    grid_v: wp.array4d(dtype=wp.vec3),
+):
+    """Momentum -> velocity, gravity, boundaries; also clears mass/momentum for the next P2G.
+
+    Nodes without mass are neither read by G2P with a non-zero weight nor written here.
+    """
+    s, i, j, k = wp.tid()
+    if iteration >= substeps[s]:
+        return
+    m = grid_m[s, i, j, k]
+    if m <= 0.0:
+        return
+    vel = grid_mv[s, i, j, k] / m + wp.vec3(0.0, 0.0, -gravity * dt[s])
+    grid_mv[s, i, j, k] = wp.vec3(0.0)
+    grid_m[s, i, j, k] = 0.0
+    if boundaries != 0:
+        vx = vel[0]
+        vy = vel[1]
+        vz = vel[2]
+        # Walls and ceiling: free slip, separation allowed.
+        if (i < _BOUND and vx < 0.0) or (i >= _GRID - _BOUND and vx > 0.0):
+            vx = 0.0
+        if (j < _BOUND and vy < 0.0) or (j >= _GRID - _BOUND and vy > 0.0):
+            vy = 0.0
+        if k >= _GRID - _BOUND and vz > 0.0:
+            vz = 0.0
+        # Ground: no penetration, Coulomb friction |dv_t| <= mu_g |v_n| on the tangential part.
+        if k < _BOUND and vz < 0.0:
+            vt = wp.sqrt(vx * vx + vy * vy)
+            if vt > 0.0:
+                scale = wp.max(vt + _GROUND_FRICTION * vz, 0.0) / vt
+                vx = vx * scale
+                vy = vy * scale
+            vz = 0.0
+        vel = wp.vec3(vx, vy, vz)
+    grid_v[s, i, j, k] = vel
+
+
+@wp.kernel
+def g2p(
+    iteration: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    stress: wp.array(dtype=wp.mat33),
+    scene: wp.array(dtype=wp.int32),
+    substeps: wp.array(dtype=wp.int32),
+    dt: wp.array(dtype=float),
+    family: wp.array(dtype=wp.int32),
+    mu: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    yield_stress: wp.array(dtype=float),
+    alpha: wp.array(dtype=float),
+    grid_v: wp.array4d(dtype=wp.vec3),
+):
+    p = wp.tid()
+    s = scene[p]
+    if iteration >= substeps[s]:
+        return
+    h = dt[s]
+    xg = x[p] * _INV_DX
+    base = wp.vec3i(int(xg[0] - 0.5), int(xg[1] - 0.5), int(xg[2] - 0.5))
+    fx = xg - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    w = bspline_weights(fx)
+    new_v = wp.vec3(0.0)
+    new_C = wp.mat33(0.0)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                weight = w[i, 0] * w[j, 1] * w[k, 2]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * _DX
+                gv = grid_v[s, base[0] + i, base[1] + j, base[2] + k]
+                new_v += weight * gv
+                new_C += (4.0 * _INV_DX * _INV_DX * weight) * wp.outer(gv, dpos)
+    v[p] = new_v
+    C[p] = new_C
+    nx = x[p] + h * new_v
+    x[p] = wp.vec3(
+        wp.clamp(nx[0], _CLAMP_LO, _CLAMP_HI), wp.clamp(nx[1], _CLAMP_LO, _CLAMP_HI), wp.clamp(nx[2], _CLAMP_LO, _CLAMP_HI)
+    )
+    # Deformation update, plastic return mapping, then the stress the next P2G will use (one SVD).
+    f_trial = (wp.identity(n=3, dtype=float) + h * new_C) * F[p]
+    fam = family[s]
+    U, sigma, V = svd(f_trial)
+    sigma_new = project_sigma(fam, sigma, mu[s], lam[s], yield_stress[s], alpha[s])
+    if fam == JELLY:
+        F[p] = f_trial
+    else:
+        F[p] = compose(U, sigma_new, V)
+    stress[p] = kirchhoff_svd(fam, U, sigma_new, mu[s], lam[s])
+
+
+@wp.kernel
+def record_frame(
+    frame: int,
+    index: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    out_x: wp.array2d(dtype=wp.vec3),
+    out_F: wp.array2d(dtype=wp.mat33),
+):
+    r = wp.tid()
+    p = index[r]
+    out_x[frame, r] = x[p]
+    out_F[frame, r] = F[p]
+
+
+def _validate(scene: Scene, number: int) -> np.ndarray:
+    pos = np.asarray(scene.positions, dtype=np.float32)
+    if pos.ndim != 2 or pos.shape[1] != 3 or len(pos) == 0:
+        raise ValueError(f"scene {number}: positions must be a non-empty (N, 3) array, got shape {pos.shape}")
+    if not np.all(np.isfinite(pos)) or pos.min() < CLAMP_LO or pos.max() > CLAMP_HI:
+        raise ValueError(
+            f"scene {number}: positions must lie inside [{CLAMP_LO:.4f}, {CLAMP_HI:.4f}]^3 "
+            f"(unit cube minus the boundary layer); got [{pos.min():.4f}, {pos.max():.4f}]. "
+            "Scale/translate the shape into the domain above the ground."
+        )
+    if scene.particle_volume <= 0 or scene.density <= 0:
+        raise ValueError(f"scene {number}: particle_volume and density must be positive")
+    return pos
+
+
+def simulate(
+    scenes: list[Scene],
+    device: str = "cpu",
+    frame_count: int = FRAME_COUNT,
+    frame_interval: float = FRAME_INTERVAL,
+    progress: bool = False,
+    gravity: float = GRAVITY,
+    boundaries: bool = True,
+) -> list[SceneResult]:
+    """Simulates all scenes together in the same kernel launches; returns one result per scene.
+
+    gravity (m/s^2 along -z) and boundaries (walls + ground) can be switched off for physics tests.
+    """
+    if not scenes:
+        return []
+    if frame_count < 1:
+        raise ValueError("frame_count must be >= 1")
+    positions = [_validate(s, i) for i, s in enumerate(scenes)]
+    counts = np.array([len(p) for p in positions], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    records = []
+    for i, (s, n) in enumerate(zip(scenes, counts)):
+        rec = np.arange(n) if s.record is None else np.asarray(s.record, dtype=np.int64).reshape(-1)
+        if len(rec) and (rec.min() < 0 or rec.max() >= n):
+            raise ValueError(f"scene {i}: record indices must lie in [0, {n})")
+        records.append(rec)
+    rec_counts = np.array([len(r) for r in records], dtype=np.int64)
+    rec_offsets = np.concatenate([[0], np.cumsum(rec_counts)])
+
+    substeps = np.array([_scene_substeps(s, frame_interval) for s in scenes], dtype=np.int32)
+    params = [full_parameters(s.family, s.parameters) for s in scenes]
+    lame_pairs = [lame(p["youngs_modulus"], p["poissons_ratio"]) for p in params]
+    velocities = np.concatenate(
+        [np.broadcast_to(np.asarray(s.velocity, dtype=np.float32).reshape(3), (n, 3)) for s, n in zip(scenes, counts)]
+    )
+    num_scenes, total = len(scenes), int(offsets[-1])
+
+    with wp.ScopedDevice(device):
+        f32 = lambda a: wp.array(np.asarray(a, dtype=np.float32), dtype=float)  # noqa: E731
+        i32 = lambda a: wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32)  # noqa: E731
+        x = wp.array(np.concatenate(positions), dtype=wp.vec3)
+        v = wp.array(velocities, dtype=wp.vec3)
+        C = wp.zeros(total, dtype=wp.mat33)
+        F = wp.array(np.broadcast_to(np.eye(3, dtype=np.float32), (total, 3, 3)).copy(), dtype=wp.mat33)
+        stress = wp.zeros(total, dtype=wp.mat33)
+        scene_of = i32(np.repeat(np.arange(num_scenes), counts))
+        n_sub = i32(substeps)
+        dt = f32(frame_interval / substeps.astype(np.float64))
+        mass = f32([s.density * s.particle_volume for s in scenes])
+        volume = f32([s.particle_volume for s in scenes])
+        family = i32([FAMILY_CODES[s.family] for s in scenes])
+        mu = f32([m for m, _ in lame_pairs])
+        lam = f32([l for _, l in lame_pairs])
+        yield_stress = f32([p.get("yield_stress", 0.0) for p in params])
+        alpha = f32([drucker_prager_alpha(p["friction_angle"]) if "friction_angle" in p else 0.0 for p in params])
+        shape = (num_scenes, GRID_RESOLUTION, GRID_RESOLUTION, GRID_RESOLUTION)
+        grid_mv = wp.zeros(shape, dtype=wp.vec3)
+        grid_m = wp.zeros(shape, dtype=float)
+        grid_v = wp.zeros(shape, dtype=wp.vec3)
+        rec_index = i32(np.concatenate([r + o for r, o in zip(records, offsets[:-1])]))
+        n_rec = int(rec_offsets[-1])
+        out_x = wp.zeros((frame_count, n_rec), dtype=wp.vec3)
+        out_F = wp.zeros((frame_count, n_rec), dtype=wp.mat33)
+
+        def record(frame: int) -> None:
+            if n_rec:
+                wp.launch(record_frame, n_rec, inputs=[frame, rec_index, x, F, out_x, out_F])
+
+        record(0)
+        iterations = int(substeps.max())
+        frames = range(1, frame_count)
+        if progress:
+            from tqdm import tqdm
+
+            frames = tqdm(frames, desc=f"MPM {num_scenes} scenes", unit="frame")
+        for frame in frames:
+            for it in range(iterations):
+                wp.launch(p2g, total, inputs=[it, x, v, C, stress, scene_of, n_sub, dt, mass, volume, grid_mv, grid_m])
+                wp.launch(
+                    grid_update,
+                    shape,
+                    inputs=[it, n_sub, dt, float(gravity), int(boundaries), grid_mv, grid_m, grid_v],
+                )
+                wp.launch(
+                    g2p,
+                    total,
+                    inputs=[it, x, v, C, F, stress, scene_of, n_sub, dt, family, mu, lam, yield_stress, alpha, grid_v],
+                )
+            record(frame)
+        all_x, all_v = x.numpy(), v.numpy()
+        rec_x, rec_F = out_x.numpy(), out_F.numpy()
+
+    results = []
+    for i in range(num_scenes):
+        r0, r1, p0, p1 = rec_offsets[i], rec_offsets[i + 1], offsets[i], offsets[i + 1]
+        results.append(
+            SceneResult(
+                positions=np.ascontiguousarray(rec_x[:, r0:r1]),
+                deformation=np.ascontiguousarray(rec_F[:, r0:r1]),
+                substeps_per_frame=int(substeps[i]),
+                all_positions_final=all_x[p0:p1].copy(),
+                all_velocities_final=all_v[p0:p1].copy(),
+            )
+        )
+    return results
