@@ -1,0 +1,284 @@
+"""The bundled student as an onnxruntime model: metadata, per-frame features, estimates in SI.
+
+Follows docs/architecture.md "ONNX model metadata". Runtime dependencies: onnxruntime, numpy,
+opencv (never torch). Two kinds of model:
+
+- ``clip``: one graph, ``masks`` (B, T, H, W) + ``valid`` (B, T) -> logits, params, params_logvar.
+  A frame's feature is the resized mask itself.
+- ``streaming``: ``<name>.frame.onnx`` maps one frame to an embedding, ``<name>.onnx`` (the
+  temporal head) maps the embeddings of a window to the outputs. A frame's feature is its
+  embedding, so a new frame costs one frame encoding plus one run of the small head.
+
+Callers (node, evaluate, service, benchmark) all go ``encode`` per frame, keep the features on
+the model's frame slots (``ad_estimator.window``), then ``predict``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import onnxruntime as ort
+
+REQUIRED_METADATA = (
+    "ad.model_id",
+    "ad.class_names",
+    "ad.parameter_names",
+    "ad.parameter_ranges",
+    "ad.family_parameters",
+    "ad.fixed_parameters",
+    "ad.frame_interval",
+    "ad.frame_count",
+    "ad.input_size",
+    "ad.kind",
+)
+KINDS = ("clip", "streaming")
+
+
+class ModelError(ValueError):
+    """The model file is missing, unreadable or does not follow the metadata contract."""
+
+
+@dataclass(frozen=True)
+class ParameterRange:
+    """Sampling range of one parameter; the model predicts values normalised to [0, 1] over it."""
+
+    low: float
+    high: float
+    scale: str  # "log" or "linear"
+
+    def denormalise(self, u: np.ndarray) -> np.ndarray:
+        u = np.clip(u, 0.0, 1.0)  # predictions outside the prior range are not plausible values
+        if self.scale == "log":
+            return np.exp(math.log(self.low) + u * (math.log(self.high) - math.log(self.low)))
+        return self.low + u * (self.high - self.low)
+
+    def sigma(self, value: np.ndarray, sigma_u: np.ndarray) -> np.ndarray:
+        """One-sigma in SI from one-sigma in normalised units (delta method, first order)."""
+        if self.scale == "log":
+            return value * (math.log(self.high) - math.log(self.low)) * sigma_u
+        return (self.high - self.low) * sigma_u
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    path: Path
+    model_id: str
+    kind: str
+    class_names: tuple[str, ...]
+    parameter_names: tuple[str, ...]
+    parameter_ranges: dict[str, ParameterRange]
+    family_parameters: dict[str, tuple[str, ...]]
+    fixed_parameters: dict[str, dict[str, float]]
+    frame_interval: float
+    frame_count: int
+    input_size: tuple[int, int]  # (H, W)
+    frame_encoder: Path | None  # streaming models only
+
+
+@dataclass
+class Estimate:
+    """One estimate. Parameters are SI; NaN where the predicted family does not use a parameter."""
+
+    class_names: tuple[str, ...]
+    probabilities: np.ndarray  # (C,)
+    material: str
+    parameter_names: tuple[str, ...]
+    parameters: np.ndarray  # (P,) for `material`
+    uncertainties: np.ndarray  # (P,) one sigma, SI; NaN where none
+    raw_parameters: np.ndarray  # (P,) every head output denormalised, whatever the family
+    raw_uncertainties: np.ndarray  # (P,)
+    frames_used: int
+    inference_time: float  # seconds spent in predict()
+
+    @property
+    def class_index(self) -> int:
+        return self.class_names.index(self.material)
+
+
+def _json(meta: dict, key: str, path: Path):
+    try:
+        return json.loads(meta[key])
+    except (json.JSONDecodeError, TypeError) as exc:
+        raise ModelError(f"{path}: metadata {key!r} is not valid JSON ({exc}); re-export the model") from exc
+
+
+def parse_metadata(meta: dict[str, str], path: Path) -> ModelInfo:
+    """Validate the ``ad.*`` metadata of ``path``; ModelError names the file and what is wrong."""
+    missing = [k for k in REQUIRED_METADATA if k not in meta]
+    if missing:
+        raise ModelError(
+            f"{path}: ONNX metadata incomplete, missing {', '.join(missing)} "
+            "(see docs/architecture.md 'ONNX model metadata'; re-export with python -m training export)")
+    try:
+        kind = meta["ad.kind"]
+        if kind not in KINDS:
+            raise ModelError(f"{path}: ad.kind is {kind!r}, expected one of {KINDS}")
+        class_names = tuple(_json(meta, "ad.class_names", path))
+        parameter_names = tuple(_json(meta, "ad.parameter_names", path))
+        ranges = {}
+        for name, spec in _json(meta, "ad.parameter_ranges", path).items():
+            low, high, scale = spec
+            if scale not in ("log", "linear") or not float(low) < float(high) or (scale == "log" and float(low) <= 0):
+                raise ModelError(f"{path}: bad range for {name}: {spec}")
+            ranges[name] = ParameterRange(float(low), float(high), scale)
+        family_parameters = {f: tuple(v) for f, v in _json(meta, "ad.family_parameters", path).items()}
+        fixed = {f: {k: float(v) for k, v in d.items()} for f, d in _json(meta, "ad.fixed_parameters", path).items()}
+        input_size = tuple(int(v) for v in _json(meta, "ad.input_size", path))
+        frame_interval = float(meta["ad.frame_interval"])
+        frame_count = int(meta["ad.frame_count"])
+    except ModelError:
+        raise
+    except (ValueError, TypeError, AttributeError) as exc:
+        raise ModelError(f"{path}: malformed ad.* metadata ({exc}); re-export the model") from exc
+    if missing_ranges := [n for n in parameter_names if n not in ranges]:
+        raise ModelError(f"{path}: ad.parameter_ranges lacks {missing_ranges}")
+    if unknown := [f for f in family_parameters if f not in class_names]:
+        raise ModelError(f"{path}: ad.family_parameters names unknown families {unknown}")
+    if len(input_size) != 2 or min(input_size) <= 0 or frame_count <= 0 or not frame_interval > 0:
+        raise ModelError(f"{path}: bad input_size/frame_count/frame_interval metadata")
+    frame_encoder = None
+    if kind == "streaming":
+        if "ad.frame_encoder" not in meta:
+            raise ModelError(f"{path}: streaming model without ad.frame_encoder metadata")
+        frame_encoder = path.parent / meta["ad.frame_encoder"]
+    return ModelInfo(path, meta["ad.model_id"], kind, class_names, parameter_names, ranges, family_parameters,
+                     fixed, frame_interval, frame_count, input_size, frame_encoder)
+
+
+def _session(path: Path, threads: int) -> ort.InferenceSession:
+    if not path.is_file():
+        raise ModelError(f"model file not found: {path} (set the model_path parameter / --model to an exported .onnx)")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.log_severity_level = 3
+    try:
+        return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises several unrelated types for unreadable files
+        raise ModelError(f"cannot load ONNX model {path}: {exc}") from exc
+
+
+def _require_io(session: ort.InferenceSession, path: Path, inputs: tuple[str, ...], outputs: tuple[str, ...]):
+    have_in = {i.name for i in session.get_inputs()}
+    have_out = {o.name for o in session.get_outputs()}
+    if not set(inputs) <= have_in or not set(outputs) <= have_out:
+        raise ModelError(f"{path}: expected inputs {inputs} and outputs {outputs}, "
+                         f"found inputs {sorted(have_in)} and outputs {sorted(have_out)}")
+
+
+def softmax(logits: np.ndarray) -> np.ndarray:
+    z = np.exp(logits - logits.max())
+    return z / z.sum()
+
+
+class EstimatorModel:
+    """An exported student. ``load`` it, ``encode`` frames, ``predict`` from a window of features."""
+
+    def __init__(self, info: ModelInfo, session: ort.InferenceSession, frame_session: ort.InferenceSession | None):
+        self.info = info
+        self._session = session
+        self._frame_session = frame_session
+        self._has_logvar = "params_logvar" in {o.name for o in session.get_outputs()}
+        self._outputs = ["logits", "params"] + (["params_logvar"] if self._has_logvar else [])
+        h, w = info.input_size
+        if frame_session is None:
+            self.feature_shape: tuple[int, ...] = (h, w)
+        else:
+            embedding = frame_session.run(["embedding"], {"frame": np.zeros((1, 1, h, w), np.float32)})[0]
+            self.feature_shape = tuple(embedding.shape[1:])
+        # Warm-up run: the first onnxruntime call allocates; keep that out of the first estimate's latency.
+        self.predict(np.zeros((1, *self.feature_shape), np.float32), np.ones(1, bool))
+
+    @classmethod
+    def load(cls, path: str | Path, threads: int = 1) -> "EstimatorModel":
+        """Open ``path`` (for streaming models the temporal head; its frame encoder is found via metadata).
+
+        Raises ModelError naming the file when it is missing, corrupt or its metadata is incomplete.
+        """
+        path = Path(path)
+        session = _session(path, threads)
+        info = parse_metadata(session.get_modelmeta().custom_metadata_map, path)
+        if info.kind == "clip":
+            _require_io(session, path, ("masks", "valid"), ("logits", "params"))
+            return cls(info, session, None)
+        if {i.name for i in session.get_inputs()} == {"frame"}:
+            raise ModelError(f"{path} is a frame encoder; pass the temporal head model "
+                             f"({path.name.replace('.frame.onnx', '.onnx')}) instead")
+        _require_io(session, path, ("embeddings", "valid"), ("logits", "params"))
+        frame_session = _session(info.frame_encoder, threads)
+        _require_io(frame_session, info.frame_encoder, ("frame",), ("embedding",))
+        return cls(info, session, frame_session)
+
+    @property
+    def model_id(self) -> str:
+        return self.info.model_id
+
+    def prepare(self, mask: np.ndarray) -> np.ndarray:
+        """Binary uint8 mask (0/255) of any size -> float32 (H, W) in [0, 1] at the model's input size.
+
+        Area interpolation, as the simulator's 512 -> 128 downsampling (SPEC 6)."""
+        h, w = self.info.input_size
+        if mask.shape != (h, w):
+            mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_AREA)
+        return mask.astype(np.float32) * np.float32(1.0 / 255.0)
+
+    def encode(self, mask: np.ndarray) -> np.ndarray:
+        """Feature of one frame: the prepared mask (clip models) or its embedding (streaming models)."""
+        frame = self.prepare(mask)
+        if self._frame_session is None:
+            return frame
+        return self._frame_session.run(["embedding"], {"frame": frame[None, None]})[0][0]
+
+    def predict(self, features: np.ndarray, valid: np.ndarray) -> Estimate:
+        """Estimate from per-slot features (T <= frame_count, oldest first) and their validity."""
+        start = time.perf_counter()
+        count = self.info.frame_count
+        features = np.asarray(features, np.float32)
+        valid = np.asarray(valid, bool)
+        if features.shape[1:] != self.feature_shape or len(features) != len(valid) or not 0 < len(valid) <= count:
+            raise ValueError(f"features {features.shape} / valid {valid.shape} do not fit the model "
+                             f"(up to {count} slots of {self.feature_shape})")
+        padded = np.zeros((1, count, *self.feature_shape), np.float32)
+        padded[0, : len(features)] = features * valid.reshape(-1, *([1] * len(self.feature_shape)))
+        mask = np.zeros((1, count), np.float32)
+        mask[0, : len(valid)] = valid
+        name = "masks" if self._frame_session is None else "embeddings"
+        outputs = self._session.run(self._outputs, {name: padded, "valid": mask})
+        logits, params = outputs[0][0], outputs[1][0]
+        logvar = outputs[2][0] if self._has_logvar else None
+        return self._estimate(logits, params, logvar, int(valid.sum()), time.perf_counter() - start)
+
+    def _estimate(self, logits, params, logvar, frames_used, elapsed) -> Estimate:
+        info = self.info
+        probabilities = softmax(logits.astype(np.float64))
+        material = info.class_names[int(np.argmax(probabilities))]
+        raw = np.empty(len(info.parameter_names))
+        raw_sigma = np.full(len(info.parameter_names), np.nan)
+        for i, name in enumerate(info.parameter_names):
+            rng = info.parameter_ranges[name]
+            raw[i] = rng.denormalise(float(params[i]))
+            if logvar is not None:
+                raw_sigma[i] = rng.sigma(raw[i], math.exp(0.5 * float(np.clip(logvar[i], -30.0, 30.0))))
+        values, sigma = self.family_parameters(material, raw, raw_sigma)
+        return Estimate(info.class_names, probabilities, material, info.parameter_names, values, sigma,
+                        raw, raw_sigma, frames_used, elapsed)
+
+    def family_parameters(self, family: str, raw: np.ndarray, raw_sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Parameters (and sigmas) of ``family``: its fixed values exact, unused ones NaN."""
+        used = self.info.family_parameters.get(family, ())
+        fixed = self.info.fixed_parameters.get(family, {})
+        values = np.full(len(raw), np.nan)
+        sigma = np.full(len(raw), np.nan)
+        for i, name in enumerate(self.info.parameter_names):
+            if name in fixed:
+                values[i], sigma[i] = fixed[name], 0.0
+            elif name in used:
+                values[i], sigma[i] = raw[i], raw_sigma[i]
+        return values, sigma

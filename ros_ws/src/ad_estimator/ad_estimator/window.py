@@ -1,0 +1,233 @@
+"""Placing frames on the model's frame slots by their stamps, episode segmentation, output policy.
+
+Pure logic (no ROS, no onnxruntime), shared by the node, its EstimateMaterial service, evaluate
+and the latency benchmark, so that live and offline paths see exactly the same slots.
+
+Resampling rule. An episode starts at the stamp t0 of its first frame; slot k (k < frame_count)
+sits at t0 + k * dt, dt the model's frame interval. Each slot takes the received frame whose stamp
+is nearest to the slot time, provided it is within ``slot_tolerance * dt`` (ties go to the earlier
+frame). A slot no frame comes near stays empty and is passed to the model as invalid (``valid``
+mask), never invented. So a 40 fps camera fills every slot exactly, a 30 fps or jittery camera
+gets the nearest frames (time error at most half its frame period), a camera slower than
+1 / (2 * tolerance * dt) leaves gaps. Slot k is final ("settled") once a frame stamped at or after
+its time arrived (no later frame can be nearer); estimates only ever use settled slots, so the
+estimate at 25 frames is due the moment the frame for the last slot arrives. ``flush()`` settles
+what can be settled when no more frames are coming (end of stream, idle input).
+
+Episodes. The window restarts (its next frame becomes frame 0) on a stamp gap larger than
+``gap_threshold`` seconds, on stamps going backwards, on a change of image size and on
+``reset()``. A frame with the same stamp as the previous one is a duplicate and ignored. The
+model expects frame 0 at the release of the object, so the window is anchored at the episode
+start; once the episode's last slot is settled, further frames are ignored until a restart.
+
+Output policy. ``episode``: one estimate per episode when all frame_count slots are settled.
+``anytime``: an estimate when min_frames slots are settled, then each time ``every_n`` more are,
+always one when the window is complete, and one on flush if slots were settled since the last.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+POLICIES = ("episode", "anytime")
+# Stamps closer than this to a slot time count as at it (float stamps such as 1.5 + 3 * 0.025).
+SETTLE_EPSILON_NS = 1_000
+
+RESTART_FIRST = "first"
+RESTART_GAP = "gap"
+RESTART_BACKWARDS = "backwards"
+RESTART_SIZE = "size"
+
+
+@dataclass
+class WindowOutput:
+    """The settled slots of one episode when an estimate is due."""
+
+    features: np.ndarray  # (n, *feature_shape); zeros where invalid
+    valid: np.ndarray  # (n,) bool
+    complete: bool  # all frame_count slots settled
+    oldest_stamp_ns: int  # stamp of the frame in the first valid slot
+    newest_stamp_ns: int  # stamp of the frame in the last valid slot
+    episode_start_ns: int  # t0: stamp of the episode's first frame
+
+    @property
+    def frames_used(self) -> int:
+        return int(self.valid.sum())
+
+
+@dataclass
+class _Slot:
+    stamp_ns: int
+    error_ns: int
+    feature: np.ndarray
+
+
+@dataclass
+class WindowStats:
+    frames: int = 0  # frames offered
+    encoded: int = 0  # frames that landed in a slot (and were encoded)
+    ignored: int = 0  # duplicates, frames after the episode's end, frames between slots
+    restarts: dict[str, int] = field(default_factory=dict)
+
+
+class FrameWindow:
+    """Online episode window; see the module docstring for the rules."""
+
+    def __init__(self, frame_interval: float, frame_count: int, gap_threshold: float = 0.3,
+                 slot_tolerance: float = 1.0, policy: str = "episode", every_n: int = 1, min_frames: int = 10):
+        if policy not in POLICIES:
+            raise ValueError(f"output policy must be one of {POLICIES}, got {policy!r}")
+        if not frame_interval > 0 or frame_count < 1 or every_n < 1 or not 1 <= min_frames <= frame_count:
+            raise ValueError("need frame_interval > 0, frame_count >= 1, every_n >= 1, 1 <= min_frames <= frame_count")
+        if not 0 < slot_tolerance <= 2:
+            raise ValueError("slot_tolerance is a fraction of the frame interval in (0, 2]")
+        self.interval_ns = int(round(frame_interval * 1e9))
+        if not gap_threshold * 1e9 > self.interval_ns * slot_tolerance:
+            raise ValueError("gap_threshold must exceed slot_tolerance * frame_interval")
+        self.frame_count = frame_count
+        self.gap_ns = int(round(gap_threshold * 1e9))
+        self.tolerance_ns = int(round(slot_tolerance * self.interval_ns))
+        self.policy = policy
+        self.every_n = every_n
+        self.min_frames = min_frames if policy == "anytime" else frame_count
+        self.stats = WindowStats()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the current episode; the next frame starts a new one."""
+        self._start_ns: int | None = None
+        self._last_ns: int | None = None
+        self._size: tuple | None = None
+        self._slots: list[_Slot | None] = [None] * self.frame_count
+        self._settled = 0  # slots 0.._settled-1 are final
+        self._emitted = 0  # settled count at the last estimate (0 = none yet)
+        self._done = False
+
+    @property
+    def settled(self) -> int:
+        return self._settled
+
+    @property
+    def active(self) -> bool:
+        """An episode has started and its final estimate is not out yet."""
+        return self._start_ns is not None and not self._done
+
+    def _restart(self, reason: str) -> list[WindowOutput]:
+        outputs = self.flush() if self._start_ns is not None else []
+        self.stats.restarts[reason] = self.stats.restarts.get(reason, 0) + 1
+        self.reset()
+        return outputs
+
+    def add(self, stamp_ns: int, size: tuple, encode: Callable[[], np.ndarray]) -> list[WindowOutput]:
+        """Offer one frame (stamp in ns, image size); ``encode()`` is called only if the frame lands in a slot.
+
+        Returns the estimates due now: usually none; the previous episode's last one when this frame
+        restarts the window (see flush); at most one for the current episode.
+        """
+        self.stats.frames += 1
+        outputs: list[WindowOutput] = []
+        if self._start_ns is None:
+            self.stats.restarts[RESTART_FIRST] = self.stats.restarts.get(RESTART_FIRST, 0) + 1
+        elif size != self._size:
+            outputs = self._restart(RESTART_SIZE)
+        elif stamp_ns < self._last_ns:
+            outputs = self._restart(RESTART_BACKWARDS)
+        elif stamp_ns - self._last_ns > self.gap_ns:
+            outputs = self._restart(RESTART_GAP)
+        elif stamp_ns == self._last_ns:
+            self.stats.ignored += 1
+            return outputs
+        if self._start_ns is None:
+            self._start_ns, self._size = stamp_ns, size
+        self._last_ns = stamp_ns
+        if self._done:
+            self.stats.ignored += 1
+            return outputs
+        self._place(stamp_ns, encode)
+        offset = stamp_ns - self._start_ns + SETTLE_EPSILON_NS
+        self._settled = min(self.frame_count, max(self._settled, offset // self.interval_ns + 1))
+        outputs.extend(self._due(final=False))
+        return outputs
+
+    def _place(self, stamp_ns: int, encode: Callable[[], np.ndarray]) -> None:
+        rel = stamp_ns - self._start_ns
+        first = max(self._settled, -((self.tolerance_ns - rel) // self.interval_ns))  # ceil((rel - tol) / dt)
+        last = min(self.frame_count - 1, (rel + self.tolerance_ns) // self.interval_ns)
+        feature = None
+        for k in range(first, last + 1):
+            error = abs(rel - k * self.interval_ns)
+            slot = self._slots[k]
+            if slot is None or error < slot.error_ns:
+                if feature is None:
+                    feature = encode()
+                    self.stats.encoded += 1
+                self._slots[k] = _Slot(stamp_ns, error, feature)
+        if feature is None:
+            self.stats.ignored += 1
+
+    def flush(self) -> list[WindowOutput]:
+        """No more frames are coming for now: settle every slot that has a frame, emit what is then due.
+
+        Safe to call at any time (e.g. when input went idle): frames that still come later continue
+        the episode, only an estimate already emitted is not repeated."""
+        if not self.active:
+            return []
+        filled = [k for k, slot in enumerate(self._slots) if slot is not None]
+        self._settled = max(self._settled, filled[-1] + 1)
+        return self._due(final=True)
+
+    def _due(self, final: bool) -> list[WindowOutput]:
+        n = self._settled
+        complete = n == self.frame_count
+        if n <= self._emitted or n < self.min_frames:
+            return []
+        if self.policy == "episode":
+            due = complete
+        else:
+            due = complete or final or self._emitted == 0 or n - self._emitted >= self.every_n
+        if not due:
+            return []
+        output = self._output(n)
+        if output is None:
+            return []
+        self._emitted = n
+        self._done = complete
+        return [output]
+
+    def _output(self, n: int) -> WindowOutput | None:
+        slots = self._slots[:n]
+        used = [s for s in slots if s is not None]
+        if not used:
+            return None
+        shape = used[0].feature.shape
+        features = np.zeros((n, *shape), np.float32)
+        valid = np.zeros(n, bool)
+        for k, slot in enumerate(slots):
+            if slot is not None:
+                features[k] = slot.feature
+                valid[k] = True
+        return WindowOutput(features, valid, n == self.frame_count, used[0].stamp_ns, used[-1].stamp_ns,
+                            self._start_ns)
+
+
+def stamp_to_ns(sec: int, nanosec: int) -> int:
+    return int(sec) * 1_000_000_000 + int(nanosec)
+
+
+def ns_to_stamp(ns: int) -> tuple[int, int]:
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    return sec, nanosec
+
+
+def clip_stamps(stamps_ns: list[int], frame_interval: float) -> list[int]:
+    """Stamps for a clip given in one call: its own if strictly increasing; all equal (unstamped,
+    e.g. zero) means consecutive frames on the model's interval. Anything else is an error."""
+    if len(stamps_ns) > 1 and all(s == stamps_ns[0] for s in stamps_ns):
+        step = int(round(frame_interval * 1e9))
+        return [stamps_ns[0] + k * step for k in range(len(stamps_ns))]
+    if any(b <= a for a, b in zip(stamps_ns, stamps_ns[1:])):
+        raise ValueError("clip stamps must be strictly increasing (or all equal for frames on the model's interval)")
+    return list(stamps_ns)
+
