@@ -1,0 +1,783 @@
+"""rosbag2-compatible MCAP bags without a ROS runtime: writer, reader, message schemas.
+
+A bag is a folder holding ``metadata.yaml`` (rosbag2 format version 9) and one or more
+``<folder>_<i>.mcap`` files (profile ``ros2``, ``ros2msg`` schemas with the complete
+dependency definitions, ``cdr`` messages, zstd-compressed chunks), i.e. what
+``ros2 bag record -s mcap`` writes on ROS 2 Jazzy, so ``ros2 bag info/play``, rosbags and
+Foxglove read it.
+
+Log time of a message is its header stamp (simulated time) for the simulator topics; the
+recorder keeps the receive wall time as publish time.
+
+This module never imports rclpy: it runs on the GPU machine and in training.
+"""
+
+from __future__ import annotations
+
+import argparse
+import bisect
+import heapq
+import io
+import json
+import os
+import re
+import struct
+import sys
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator, NamedTuple
+
+import yaml
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Schema
+from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
+from mcap.writer import CompressionType, Writer
+from mcap_ros2._dynamic import serialize_dynamic
+from mcap_ros2.decoder import DecoderFactory
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+DEFINITION_DELIMITER = "=" * 80
+SCHEMA_DIR = Path(__file__).resolve().parent / "data" / "schemas"
+TYPE_HASHES_FILE = "type_hashes.json"
+# The message types the simulator publishes; their definitions are vendored in SCHEMA_DIR.
+VENDORED_TYPES = (
+    "ad_msgs/msg/SimInstance",
+    "sensor_msgs/msg/Image",
+    "sensor_msgs/msg/CameraInfo",
+    "sensor_msgs/msg/PointCloud2",
+)
+ROS_DISTRO = "jazzy"
+METADATA_FILE = "metadata.yaml"
+# rmw's "infinite" duration, as rosbag2 (format 9) stores it.
+INFINITE_DURATION = {"sec": 9223372036, "nsec": 854775807}
+_FOOTER_RECORD_SIZE = 1 + 8 + 8 + 8 + 4
+_PRIMITIVE_TYPES = frozenset(
+    "bool byte char float32 float64 int8 uint8 int16 uint16 int32 uint32 int64 uint64 string wstring".split()
+)
+# Field types in a .msg text ("pkg/Type" in "pkg/Type[] name"), as rosbag2 finds them.
+_MSG_FIELD_TYPE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+")
+
+
+class BagError(ValueError):
+    """A bag (or one of its files) cannot be read or written as asked."""
+
+
+# --------------------------------------------------------------------------- schemas
+
+
+@dataclass(frozen=True)
+class MessageSchema:
+    """What a bag needs to describe one message type."""
+
+    name: str  # "pkg/msg/Type"
+    definition: str  # ros2msg text with every dependency appended
+    type_hash: str  # "RIHS01_..." (empty if unknown)
+
+
+def _split_type(type_name: str) -> tuple[str, str, str]:
+    parts = type_name.split("/")
+    if len(parts) == 2:
+        return parts[0], "msg", parts[1]
+    if len(parts) == 3:
+        return parts[0], parts[1], parts[2]
+    raise BagError(f"message type {type_name!r} is not of the form pkg/msg/Type")
+
+
+def ament_prefixes() -> list[Path]:
+    """Install prefixes to search for interface files: AMENT_PREFIX_PATH, then the venv."""
+    prefixes = [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    prefixes.append(Path(sys.prefix))
+    return prefixes
+
+
+def _interface_file(type_name: str, suffix: str, prefixes: Iterable[Path]) -> Path:
+    package, namespace, name = _split_type(type_name)
+    searched = []
+    for prefix in prefixes:
+        candidate = Path(prefix) / "share" / package / namespace / f"{name}{suffix}"
+        if candidate.is_file():
+            return candidate
+        searched.append(str(candidate))
+    raise BagError(
+        f"no {suffix} file for {type_name}; looked in: {', '.join(searched)}. "
+        "Source the workspace (ros_ws/install/setup.bash) so AMENT_PREFIX_PATH names it."
+    )
+
+
+def build_message_definition(type_name: str, prefixes: Iterable[Path] | None = None) -> str:
+    """The complete ros2msg definition of `type_name`, built exactly as rosbag2 builds it.
+
+    The type's .msg text comes first; each dependency follows once, depth first in sorted
+    order, after a line of 80 '=' and a line "MSG: pkg/Type".
+    """
+    prefixes = list(ament_prefixes() if prefixes is None else prefixes)
+    seen: set[str] = set()
+
+    def append(type_ref: str) -> str:
+        package = type_ref.split("/")[0]
+        text = _interface_file(type_ref, ".msg", prefixes).read_text()
+        dependencies = set()
+        for match in _MSG_FIELD_TYPE.finditer(text):
+            dep = match.group(1)
+            if dep in _PRIMITIVE_TYPES:
+                continue
+            dependencies.add(dep if "/" in dep else f"{package}/{dep}")
+        for dep in sorted(dependencies):
+            if dep not in seen:
+                seen.add(dep)
+                text += f"\n{DEFINITION_DELIMITER}\nMSG: {dep}\n" + append(dep)
+        return text
+
+    return append(type_name)
+
+
+def installed_type_hash(type_name: str, prefixes: Iterable[Path] | None = None) -> str:
+    """The RIHS01 hash that rosidl generated for `type_name` (share/<pkg>/msg/<Type>.json)."""
+    prefixes = list(ament_prefixes() if prefixes is None else prefixes)
+    package, namespace, name = _split_type(type_name)
+    path = _interface_file(type_name, ".json", prefixes)
+    full_name = f"{package}/{namespace}/{name}"
+    for entry in json.loads(path.read_text())["type_hashes"]:
+        if entry["type_name"] == full_name:
+            return entry["hash_string"]
+    raise BagError(f"{path} holds no type hash for {full_name}")
+
+
+def _vendored_file(type_name: str) -> Path:
+    package, _, name = _split_type(type_name)
+    return SCHEMA_DIR / f"{package}__{name}.msg"
+
+
+def vendor_schemas(out_dir: Path = SCHEMA_DIR, prefixes: Iterable[Path] | None = None) -> list[Path]:
+    """Write the vendored definitions and type hashes of VENDORED_TYPES from installed ROS files."""
+    prefixes = list(ament_prefixes() if prefixes is None else prefixes)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    hashes = {}
+    for type_name in VENDORED_TYPES:
+        path = out_dir / _vendored_file(type_name).name
+        path.write_text(build_message_definition(type_name, prefixes))
+        hashes[type_name] = installed_type_hash(type_name, prefixes)
+        written.append(path)
+    hashes_path = out_dir / TYPE_HASHES_FILE
+    hashes_path.write_text(json.dumps(hashes, indent=2) + "\n")
+    return [*written, hashes_path]
+
+
+def load_schema(type_name: str) -> MessageSchema:
+    """Schema of `type_name`: vendored for the simulator types, else from the ROS install."""
+    package, namespace, name = _split_type(type_name)
+    full_name = f"{package}/{namespace}/{name}"
+    if full_name in VENDORED_TYPES:
+        hashes = json.loads((SCHEMA_DIR / TYPE_HASHES_FILE).read_text())
+        return MessageSchema(full_name, _vendored_file(full_name).read_text(), hashes[full_name])
+    return MessageSchema(full_name, build_message_definition(full_name), installed_type_hash(full_name))
+
+
+def starts_with_header(definition: str) -> bool:
+    """True if the first field of the (top-level) definition is a std_msgs/Header."""
+    for line in definition.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            return line.split()[0] in ("std_msgs/Header", "Header")
+    return False
+
+
+def header_stamp_ns(cdr: bytes) -> int:
+    """Stamp of a CDR message whose first field is std_msgs/Header (after the 4-byte encapsulation)."""
+    sec, nanosec = struct.unpack_from("<iI" if cdr[1] == 1 else ">iI", cdr, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+# --------------------------------------------------------------------------- QoS
+
+
+def qos_profile(
+    reliability: str = "reliable",
+    durability: str = "volatile",
+    history: str = "keep_last",
+    depth: int = 10,
+    deadline: dict | None = None,
+    lifespan: dict | None = None,
+    liveliness: str = "automatic",
+    liveliness_lease_duration: dict | None = None,
+) -> dict:
+    """One offered QoS profile as rosbag2 (format 9) writes it in metadata and channel metadata."""
+    return {
+        "history": history,
+        "depth": int(depth),
+        "reliability": reliability,
+        "durability": durability,
+        "deadline": dict(deadline or INFINITE_DURATION),
+        "lifespan": dict(lifespan or INFINITE_DURATION),
+        "liveliness": liveliness,
+        "liveliness_lease_duration": dict(liveliness_lease_duration or INFINITE_DURATION),
+        "avoid_ros_namespace_conventions": False,
+    }
+
+
+def _dump_yaml(data: Any) -> str:
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
+
+
+# --------------------------------------------------------------------------- writer
+
+
+class _UnbufferedFile:
+    """Write-through file: each record group the MCAP writer emits reaches the OS at once,
+    so a killed writer leaves every complete chunk on disk."""
+
+    def __init__(self, path: Path):
+        self._file = open(path, "xb", buffering=0)  # noqa: SIM115 (closed in close())
+
+    def write(self, data: bytes) -> int:
+        view = memoryview(data)
+        while view:
+            view = view[self._file.write(view) :]
+        return len(data)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self._file.close()
+
+
+@dataclass
+class _Topic:
+    name: str
+    schema: MessageSchema
+    qos_profiles: list[dict]
+    message_count: int = 0
+
+
+@dataclass
+class _FileStats:
+    path: str
+    start: int | None = None
+    end: int | None = None
+    message_count: int = 0
+
+    def add(self, log_time: int) -> None:
+        self.start = log_time if self.start is None else min(self.start, log_time)
+        self.end = log_time if self.end is None else max(self.end, log_time)
+        self.message_count += 1
+
+
+class BagWriter:
+    """Writes a rosbag2 bag folder of MCAP files.
+
+    write() takes CDR bytes (what an rclpy raw subscription delivers) or a dict/object that is
+    encoded with the topic's schema (mcap_ros2's encoder). metadata.yaml is written at open,
+    at each split and at close; close() must run for the MCAP summaries to be written
+    (a killed writer still leaves complete chunks readable, see BagReader(recover=True)).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        max_bag_size: int = 0,
+        compression: str = "zstd",
+        chunk_size: int = 1024 * 1024,
+        custom_data: dict[str, str] | None = None,
+    ):
+        self.path = Path(path)
+        if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
+            raise BagError(f"bag output {self.path} already exists; remove it or choose another path")
+        compressions = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+        if compression not in compressions:
+            raise BagError(f"unknown compression {compression!r}; use one of {sorted(compressions)}")
+        if max_bag_size and max_bag_size < 64 * 1024:
+            raise BagError(f"max_bag_size {max_bag_size} is too small; use 0 (no split) or >= 65536 bytes")
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.max_bag_size = int(max_bag_size)
+        self.chunk_size = int(chunk_size)
+        self._compression = compressions[compression]
+        self.custom_data = dict(custom_data or {})
+        self._topics: dict[str, _Topic] = {}
+        self._encoders: dict[str, Any] = {}
+        self._files: list[_FileStats] = []
+        self._stream: _UnbufferedFile | None = None
+        self._mcap: Writer | None = None
+        self._channel_ids: dict[str, int] = {}
+        self._schema_ids: dict[str, int] = {}
+        self._closed = False
+        self._open_next_file()
+
+    # -- topics and messages
+
+    @property
+    def message_count(self) -> int:
+        return sum(t.message_count for t in self._topics.values())
+
+    @property
+    def topic_counts(self) -> dict[str, int]:
+        return {name: t.message_count for name, t in self._topics.items()}
+
+    def has_topic(self, topic: str) -> bool:
+        return topic in self._topics
+
+    def add_topic(
+        self,
+        topic: str,
+        type_name: str,
+        qos_profiles: list[dict] | None = None,
+        schema: MessageSchema | None = None,
+    ) -> None:
+        """Declare a topic before writing to it (type "pkg/msg/Type", offered QoS profiles)."""
+        if topic in self._topics:
+            return
+        schema = schema or load_schema(type_name)
+        self._topics[topic] = _Topic(topic, schema, list(qos_profiles or [qos_profile()]))
+        self._register_channel(self._topics[topic])
+        self._write_metadata()
+
+    def write(self, topic: str, log_time_ns: int, message: bytes | Any, publish_time_ns: int | None = None) -> None:
+        """Write one message: CDR bytes, or a dict/object encoded with the topic's schema."""
+        if self._closed:
+            raise BagError(f"bag {self.path} is closed")
+        info = self._topics.get(topic)
+        if info is None:
+            raise BagError(f"topic {topic} was not added to bag {self.path}; call add_topic() first")
+        if not isinstance(message, (bytes, bytearray, memoryview)):
+            message = self._encode(info.schema, message)
+        log_time_ns = int(log_time_ns)
+        self._mcap.add_message(
+            channel_id=self._channel_ids[topic],
+            log_time=log_time_ns,
+            data=bytes(message),
+            publish_time=log_time_ns if publish_time_ns is None else int(publish_time_ns),
+            sequence=info.message_count,
+        )
+        info.message_count += 1
+        self._files[-1].add(log_time_ns)
+        if self.max_bag_size and self._stream.tell() >= self.max_bag_size:
+            self._close_file()
+            self._open_next_file()
+
+    def flush(self) -> None:
+        """Close the chunk in progress so that it survives a kill of this process."""
+        if self._mcap is not None and not self._closed:
+            self._mcap.flush()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._close_file()
+        self._closed = True
+        self._write_metadata()
+
+    def __enter__(self) -> BagWriter:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # -- internals
+
+    def _encode(self, schema: MessageSchema, message: Any) -> bytes:
+        encoder = self._encoders.get(schema.name)
+        if encoder is None:
+            encoder = serialize_dynamic(schema.name, schema.definition)[schema.name]
+            self._encoders[schema.name] = encoder
+        return encoder(message)
+
+    def _open_next_file(self) -> None:
+        name = f"{self.path.name}_{len(self._files)}.mcap"
+        self._stream = _UnbufferedFile(self.path / name)
+        self._mcap = Writer(self._stream, chunk_size=self.chunk_size, compression=self._compression)
+        self._mcap.start(profile="ros2", library="ad_sim.rosbag")
+        self._files.append(_FileStats(name))
+        self._channel_ids.clear()
+        self._schema_ids.clear()
+        for info in self._topics.values():
+            self._register_channel(info)
+        self._write_metadata()
+
+    def _register_channel(self, info: _Topic) -> None:
+        schema_id = self._schema_ids.get(info.schema.name)
+        if schema_id is None:
+            schema_id = self._mcap.register_schema(info.schema.name, "ros2msg", info.schema.definition.encode())
+            self._schema_ids[info.schema.name] = schema_id
+        self._channel_ids[info.name] = self._mcap.register_channel(
+            topic=info.name,
+            message_encoding="cdr",
+            schema_id=schema_id,
+            metadata={
+                "offered_qos_profiles": _dump_yaml(info.qos_profiles),
+                "topic_type_hash": info.schema.type_hash,
+            },
+        )
+
+    def _close_file(self) -> None:
+        # rosbag2 stores the bag metadata in every file it closes, under the name "rosbag2".
+        self._mcap.add_metadata("rosbag2", {"serialized_metadata": _dump_yaml(self._metadata())})
+        self._mcap.finish()
+        self._stream.close()
+        self._mcap = None
+
+    def _metadata(self) -> dict:
+        starts = [f.start for f in self._files if f.start is not None]
+        ends = [f.end for f in self._files if f.end is not None]
+        start = min(starts, default=0)
+        return {
+            "version": 9,
+            "storage_identifier": "mcap",
+            "duration": {"nanoseconds": max(ends, default=0) - start},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": self.message_count,
+            "topics_with_message_count": [
+                {
+                    "topic_metadata": {
+                        "name": t.name,
+                        "type": t.schema.name,
+                        "serialization_format": "cdr",
+                        "offered_qos_profiles": t.qos_profiles,
+                        "type_description_hash": t.schema.type_hash,
+                    },
+                    "message_count": t.message_count,
+                }
+                for t in self._topics.values()
+            ],
+            "compression_format": "",
+            "compression_mode": "",
+            "relative_file_paths": [f.path for f in self._files],
+            "files": [
+                {
+                    "path": f.path,
+                    "starting_time": {"nanoseconds_since_epoch": f.start or 0},
+                    "duration": {"nanoseconds": (f.end or 0) - (f.start or 0)},
+                    "message_count": f.message_count,
+                }
+                for f in self._files
+            ],
+            "custom_data": dict(self.custom_data),
+            "ros_distro": ROS_DISTRO,
+        }
+
+    def _write_metadata(self) -> None:
+        target = self.path / METADATA_FILE
+        tmp = target.with_suffix(".yaml.tmp")
+        tmp.write_text(_dump_yaml({"rosbag2_bagfile_information": self._metadata()}))
+        tmp.replace(target)
+
+
+# --------------------------------------------------------------------------- reader
+
+
+class BagMessage(NamedTuple):
+    topic: str
+    log_time_ns: int
+    message: Any  # decoded object (attributes as in the .msg), or CDR bytes if raw
+
+
+@dataclass
+class _FileScan:
+    """State of reading one .mcap file."""
+
+    path: Path
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+
+
+def _natural_key(path: Path) -> list:
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
+class BagReader:
+    """Iterates (topic, log_time_ns, message) over a bag folder or a single .mcap file,
+    in log-time order (ties in file order), decoding with mcap_ros2 (no ROS runtime).
+
+    recover=True reads what a killed writer left: files without a summary are read up to
+    the last complete chunk, and corrupt chunks are skipped, each with a warning.
+    raw=True yields the CDR bytes instead of decoded messages.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        topics: Iterable[str] | None = None,
+        recover: bool = False,
+        raw: bool = False,
+    ):
+        self.path = Path(path)
+        self.recover = recover
+        self.raw = raw
+        self.topic_filter = None if topics is None else set(topics)
+        self.metadata: dict | None = None
+        self.files = self._find_files()
+        self._decoders: dict[tuple[int, int], Any] = {}
+        self._decoder_factory = DecoderFactory()
+
+    def _find_files(self) -> list[Path]:
+        if not self.path.exists():
+            raise BagError(f"bag {self.path} does not exist")
+        if self.path.is_file():
+            if self.path.suffix != ".mcap":
+                raise BagError(f"{self.path} is not a .mcap file or a bag folder")
+            return [self.path]
+        found = sorted(self.path.glob("*.mcap"), key=_natural_key)
+        metadata_path = self.path / METADATA_FILE
+        if metadata_path.is_file():
+            try:
+                self.metadata = yaml.safe_load(metadata_path.read_text())["rosbag2_bagfile_information"]
+                listed = [self.path / p for p in self.metadata["relative_file_paths"]]
+            except (yaml.YAMLError, KeyError, TypeError) as exc:
+                raise BagError(f"{metadata_path} is not rosbag2 metadata: {exc}") from exc
+            missing = [str(p) for p in listed if not p.is_file()]
+            if missing:
+                raise BagError(f"bag {self.path}: files named in metadata.yaml are missing: {', '.join(missing)}")
+            extra = [p for p in found if p not in listed]
+            if extra:
+                warnings.warn(f"bag {self.path}: reading .mcap files not named in metadata.yaml: {extra}", stacklevel=3)
+            files = listed + extra
+        else:
+            if found:
+                warnings.warn(
+                    f"bag {self.path} has no metadata.yaml (was the writer killed?); "
+                    f"reading the {len(found)} .mcap file(s) found",
+                    stacklevel=3,
+                )
+            files = found
+        if not files:
+            raise BagError(f"bag folder {self.path} holds no .mcap file")
+        return files
+
+    def topics(self) -> dict[str, str]:
+        """topic -> message type, over all files (reads their channel records)."""
+        result = {}
+        for path in self.files:
+            scan = _FileScan(path)
+            for _ in self._scan_file(scan):
+                pass
+            for channel in scan.channels.values():
+                schema = scan.schemas.get(channel.schema_id)
+                result[channel.topic] = schema.name if schema else ""
+        return result
+
+    def __iter__(self) -> Iterator[BagMessage]:
+        streams = [self._iter_file(i, path) for i, path in enumerate(self.files)]
+        for log_time, _, topic, message in heapq.merge(*streams, key=lambda item: (item[0], item[1])):
+            yield BagMessage(topic, log_time, message)
+
+    # -- one file
+
+    def _iter_file(self, file_index: int, path: Path) -> Iterator[tuple[int, tuple[int, int], str, Any]]:
+        scan = _FileScan(path)
+        for log_time, order, channel, data in self._scan_file(scan):
+            if self.topic_filter is not None and channel.topic not in self.topic_filter:
+                continue
+            message = data if self.raw else self._decode(scan, channel, data)
+            yield log_time, (file_index, order), channel.topic, message
+
+    def _decode(self, scan: _FileScan, channel: Channel, data: bytes) -> Any:
+        key = (id(scan), channel.id)
+        decoder = self._decoders.get(key)
+        if decoder is None:
+            schema = scan.schemas.get(channel.schema_id)
+            if schema is None:
+                raise BagError(f"{scan.path}: topic {channel.topic} has no schema (id {channel.schema_id}); cannot decode it")
+            if schema.encoding != "ros2msg" or channel.message_encoding != "cdr":
+                raise BagError(
+                    f"{scan.path}: topic {channel.topic} uses schema encoding {schema.encoding!r} and message "
+                    f"encoding {channel.message_encoding!r}; only ros2msg/cdr can be decoded"
+                )
+            try:
+                decoder = self._decoder_factory.decoder_for(channel.message_encoding, schema)
+            except Exception as exc:  # mcap_ros2 raises assorted parse errors
+                raise BagError(f"{scan.path}: cannot parse the schema {schema.name} of topic {channel.topic}: {exc}") from exc
+            self._decoders[key] = decoder
+        try:
+            return decoder(data)
+        except Exception as exc:
+            raise BagError(f"{scan.path}: message on {channel.topic} does not decode as {scan.schemas[channel.schema_id].name}: {exc}") from exc
+
+    def _problem(self, message: str) -> None:
+        if not self.recover:
+            raise BagError(message)
+        warnings.warn(message, stacklevel=4)
+
+    def _read_summary_starts(self, scan: _FileScan, data: bytes) -> dict[int, int] | None:
+        """chunk offset -> earliest log time in that and all later chunks, from the summary.
+
+        None if the file has no usable footer/summary (then it is read and sorted whole)."""
+        size = len(data)
+        footer_at = size - MAGIC_SIZE - _FOOTER_RECORD_SIZE
+        if size < 2 * MAGIC_SIZE + _FOOTER_RECORD_SIZE or data[-MAGIC_SIZE:] != MCAP_MAGIC or data[footer_at] != Opcode.FOOTER:
+            self._problem(
+                f"{scan.path} is truncated: no MCAP footer ({size} bytes; was the writer killed?). "
+                "Read it with recover=True to get every complete chunk"
+            )
+            return None
+        footer = Footer.read(ReadDataStream(io.BytesIO(data[footer_at + 9 : size - MAGIC_SIZE])))
+        if footer.summary_start == 0:
+            return None
+        try:
+            chunk_indexes = []
+            reader = StreamReader(io.BytesIO(data[footer.summary_start :]), skip_magic=True)
+            for record in reader.records:
+                if type(record).__name__ == "ChunkIndex":
+                    chunk_indexes.append(record)
+        except (McapError, struct.error, ValueError) as exc:
+            self._problem(f"{scan.path}: corrupt summary section at byte {footer.summary_start}: {exc}")
+            return None
+        chunk_indexes.sort(key=lambda c: c.chunk_start_offset)
+        suffix_min: dict[int, int] = {}
+        earliest = None
+        for chunk_index in reversed(chunk_indexes):
+            start = chunk_index.message_start_time
+            earliest = start if earliest is None else min(earliest, start)
+            suffix_min[chunk_index.chunk_start_offset] = earliest
+        return suffix_min
+
+    def _scan_file(self, scan: _FileScan) -> Iterator[tuple[int, int, Channel, bytes]]:
+        """Messages of one file as (log_time, order, channel, data), in log-time order."""
+        try:
+            data = scan.path.read_bytes()
+        except OSError as exc:
+            raise BagError(f"cannot read {scan.path}: {exc}") from exc
+        if data[:MAGIC_SIZE] != MCAP_MAGIC:
+            raise BagError(f"{scan.path} is not an MCAP file (starts with {data[:MAGIC_SIZE]!r})")
+        suffix_min = self._read_summary_starts(scan, data)
+        chunk_offsets = sorted(suffix_min) if suffix_min else []
+        pending: list[tuple[int, int, Channel, bytes]] = []
+        order = 0
+        pos = MAGIC_SIZE
+        size = len(data)
+
+        def release(until: int | None) -> Iterator[tuple[int, int, Channel, bytes]]:
+            while pending and (until is None or pending[0][0] <= until):
+                yield heapq.heappop(pending)
+
+        while pos < size:
+            if pos + 9 > size:
+                self._problem(f"{scan.path} is truncated at byte {pos} (incomplete record header)")
+                break
+            opcode = data[pos]
+            (length,) = struct.unpack_from("<Q", data, pos + 1)
+            end = pos + 9 + length
+            if end > size:
+                self._problem(
+                    f"{scan.path} is truncated or corrupt at byte {pos}: a record (opcode 0x{opcode:02x}) of "
+                    f"{length} bytes runs past the end of the file ({size} bytes)"
+                )
+                break
+            body = data[pos + 9 : end]
+            try:
+                if opcode == Opcode.CHUNK:
+                    records = breakup_chunk(Chunk.read(ReadDataStream(io.BytesIO(body))), validate_crc=True)
+                elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+                    records = [(Schema if opcode == Opcode.SCHEMA else Channel).read(ReadDataStream(io.BytesIO(body)))]
+                elif opcode == Opcode.MESSAGE:
+                    records = [Message.read(ReadDataStream(io.BytesIO(body)), length)]
+                elif opcode in (Opcode.DATA_END, Opcode.FOOTER):
+                    break
+                else:
+                    records = []
+            except Exception as exc:  # decompression, CRC and parse failures of this record
+                self._problem(f"{scan.path}: corrupt record (opcode 0x{opcode:02x}) at byte {pos}: {type(exc).__name__}: {exc}")
+                pos = end
+                continue
+            for record in records:
+                if isinstance(record, Schema):
+                    scan.schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    scan.channels[record.id] = record
+                elif isinstance(record, Message):
+                    channel = scan.channels.get(record.channel_id)
+                    if channel is None:
+                        self._problem(f"{scan.path}: message at byte {pos} names unknown channel {record.channel_id}")
+                        continue
+                    heapq.heappush(pending, (record.log_time, order, channel, record.data))
+                    order += 1
+            if chunk_offsets and opcode == Opcode.CHUNK:
+                # No later chunk holds a message earlier than the next chunk's suffix minimum.
+                following = bisect.bisect_right(chunk_offsets, pos)
+                if following < len(chunk_offsets):
+                    yield from release(suffix_min[chunk_offsets[following]])
+            pos = end
+        yield from release(None)
+
+
+@dataclass
+class BagEpisode:
+    """Messages of one episode: the /ad_sim/instance message and every other topic's messages."""
+
+    instance: Any
+    stamp_ns: int
+    messages: dict[str, list[tuple[int, Any]]] = field(default_factory=dict)
+
+
+def group_episodes(messages: Iterable[BagMessage], instance_topic: str = "/ad_sim/instance") -> Iterator[BagEpisode]:
+    """Split a log-time-ordered message stream into episodes at each instance message.
+
+    A message belongs to the latest instance stamped at or before it; messages before the
+    first instance are dropped (a recording that started mid-episode)."""
+    current: BagEpisode | None = None
+    for topic, stamp, message in messages:
+        if topic == instance_topic:
+            following = BagEpisode(message, stamp)
+            if current is not None:
+                # Frame-0 messages stamped like the instance may precede it in the file.
+                for name, items in current.messages.items():
+                    moved = []
+                    while items and items[-1][0] >= stamp:
+                        moved.append(items.pop())
+                    if moved:
+                        following.messages[name] = moved[::-1]
+                yield current
+            current = following
+        elif current is not None:
+            current.messages.setdefault(topic, []).append((stamp, message))
+    if current is not None:
+        yield current
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def _info(path: Path) -> None:
+    reader = BagReader(path, raw=True, recover=True)
+    counts: dict[str, int] = {}
+    first = last = None
+    for topic, stamp, _ in reader:
+        counts[topic] = counts.get(topic, 0) + 1
+        first = stamp if first is None else first
+        last = stamp
+    types = reader.topics()
+    print(f"bag: {path}\nfiles: {', '.join(str(p.name) for p in reader.files)}")
+    print(f"messages: {sum(counts.values())}  start: {(first or 0) / 1e9:.3f} s  end: {(last or 0) / 1e9:.3f} s")
+    for topic in sorted(types):
+        print(f"  {topic:40s} {types[topic]:32s} {counts.get(topic, 0)}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m ad_sim.rosbag", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    info = sub.add_parser("info", help="print the topics, types and message counts of a bag")
+    info.add_argument("bag", type=Path, help="bag folder or .mcap file")
+    vendor = sub.add_parser("vendor-schemas", help="regenerate ad_sim/data/schemas from the installed ROS interfaces")
+    vendor.add_argument("--out", type=Path, default=SCHEMA_DIR, help="output folder (default: %(default)s)")
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "info":
+            _info(args.bag)
+        else:
+            for path in vendor_schemas(args.out):
+                print(path)
+    except BagError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
