@@ -202,7 +202,7 @@ class FrameWindow:
         if not used:
             return None
         shape = used[0].feature.shape
-        features = np.zeros((n, *shape), np.float32)
+        features = np.zeros((n, *shape), used[0].feature.dtype)
         valid = np.zeros(n, bool)
         for k, slot in enumerate(slots):
             if slot is not None:

@@ -1,0 +1,212 @@
+"""ad_estimator.model (real onnxruntime on contract-following ONNX files) and ad_estimator.images."""
+import math
+import types
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ad_estimator.images import ImageRejected, image_to_mask
+from ad_estimator.model import EstimatorModel, ModelError
+from estimator_models import build_clip_model, build_streaming_model, falling_masks
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    d = tmp_path_factory.mktemp("models")
+    return {"clip": EstimatorModel.load(build_clip_model(d / "clip.onnx")),
+            "streaming": EstimatorModel.load(build_streaming_model(d))}
+
+
+@pytest.mark.parametrize("kind", ["clip", "streaming"])
+def test_predict_full_clip(models, kind):
+    model = models[kind]
+    assert model.info.kind == kind and model.info.frame_count == 25 and model.info.input_size == (32, 32)
+    features = np.stack([model.encode(m) for m in falling_masks()])
+    est = model.predict(features, np.ones(25, bool))
+    assert est.frames_used == 25 and est.inference_time > 0
+    assert est.probabilities.shape == (3,) and math.isclose(est.probabilities.sum(), 1.0, rel_tol=1e-9)
+    assert est.material == est.class_names[int(np.argmax(est.probabilities))]
+    lo_hi = {"youngs_modulus": (1.5e4, 1.5e6), "poissons_ratio": (0.2, 0.48), "yield_stress": (500, 25000),
+             "friction_angle": (math.radians(10), math.radians(45))}
+    for name, value in zip(est.parameter_names, est.raw_parameters):
+        assert lo_hi[name][0] <= value <= lo_hi[name][1]
+    assert np.all(est.raw_uncertainties > 0)
+
+
+def test_family_parameters_nan_and_fixed(models):
+    model = models["streaming"]
+    raw = np.array([2e5, 0.3, 1000.0, 0.5])
+    sigma = np.array([1e4, 0.01, 10.0, 0.02])
+    jelly, jelly_sigma = model.family_parameters("jelly", raw, sigma)
+    assert jelly[:2].tolist() == [2e5, 0.3] and np.isnan(jelly[2:]).all() and np.isnan(jelly_sigma[2:]).all()
+    sand, sand_sigma = model.family_parameters("sand", raw, sigma)
+    assert sand[:2].tolist() == [1e5, 0.3] and sand_sigma[:2].tolist() == [0.0, 0.0]
+    assert np.isnan(sand[2]) and sand[3] == 0.5
+    plasticine, _ = model.family_parameters("plasticine", raw, sigma)
+    assert plasticine[:3].tolist() == [2e5, 0.3, 1000.0] and np.isnan(plasticine[3])
+
+
+def test_uncertainty_is_the_delta_method_in_si(models):
+    model = models["clip"]
+    rng = model.info.parameter_ranges["youngs_modulus"]
+    u, sigma_u, h = 0.4, 0.01, 1e-6
+    value = rng.denormalise(u)
+    derivative = (rng.denormalise(u + h) - rng.denormalise(u - h)) / (2 * h)
+    assert math.isclose(rng.sigma(value, sigma_u), derivative * sigma_u, rel_tol=1e-5)
+    nu = model.info.parameter_ranges["poissons_ratio"]
+    assert math.isclose(nu.sigma(nu.denormalise(0.5), 0.1), 0.028, rel_tol=1e-9)
+
+
+def test_without_logvar_uncertainty_is_nan(tmp_path):
+    model = EstimatorModel.load(build_clip_model(tmp_path / "m.onnx", with_logvar=False))
+    est = model.predict(np.zeros((3, 32, 32), np.float32), np.ones(3, bool))
+    assert np.isnan(est.raw_uncertainties).all()
+
+
+@pytest.mark.parametrize("kind", ["clip", "streaming"])
+def test_invalid_slots_do_not_influence_the_estimate(models, kind):
+    model = models[kind]
+    features = np.stack([model.encode(m) for m in falling_masks(12)])
+    valid = np.ones(12, bool)
+    valid[[3, 7]] = False
+    a = model.predict(features, valid)
+    garbage = features.copy()
+    garbage[[3, 7]] = 1e3
+    b = model.predict(garbage, valid)
+    assert np.array_equal(a.probabilities, b.probabilities) and a.frames_used == 10
+    c = model.predict(features, np.ones(12, bool))
+    assert not np.allclose(a.probabilities, c.probabilities)
+
+
+def test_streaming_equals_encoding_then_head(models):
+    """Cached embeddings give exactly what a fresh encoding gives (B=1 everywhere)."""
+    model = models["streaming"]
+    masks = falling_masks()
+    first = np.stack([model.encode(m) for m in masks])
+    again = np.stack([model.encode(m) for m in masks])
+    assert np.array_equal(first, again) and first.shape == (25, 16)
+
+
+def test_prepare_resizes_any_size_with_area_interpolation(models):
+    model = models["clip"]
+    mask = np.zeros((128, 128), np.uint8)
+    mask[:64] = 255
+    out = model.prepare(mask)
+    assert out.shape == (32, 32) and out.dtype == np.float32
+    assert np.all(out[:16] == 1.0) and np.all(out[16:] == 0.0)
+    assert model.prepare(np.full((7, 300), 255, np.uint8)).shape == (32, 32)
+
+
+def test_missing_model_names_the_file(tmp_path):
+    path = tmp_path / "nothing.onnx"
+    with pytest.raises(ModelError, match="nothing.onnx"):
+        EstimatorModel.load(path)
+
+
+def test_corrupt_model_names_the_file(tmp_path):
+    path = tmp_path / "corrupt.onnx"
+    path.write_bytes(b"\x08\x07garbage" * 100)
+    with pytest.raises(ModelError, match="corrupt.onnx"):
+        EstimatorModel.load(path)
+
+
+def test_truncated_model_names_the_file(tmp_path):
+    good = build_clip_model(tmp_path / "good.onnx")
+    path = tmp_path / "truncated.onnx"
+    path.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(ModelError, match="truncated.onnx"):
+        EstimatorModel.load(path)
+
+
+def test_incomplete_metadata_names_file_and_keys(tmp_path):
+    path = build_clip_model(tmp_path / "nometa.onnx", drop_metadata=("ad.parameter_ranges", "ad.frame_count"))
+    with pytest.raises(ModelError, match=r"nometa.onnx.*ad.parameter_ranges.*ad.frame_count"):
+        EstimatorModel.load(path)
+
+
+def test_streaming_without_frame_encoder_names_it(tmp_path):
+    head = build_streaming_model(tmp_path, name="lonely")
+    (tmp_path / "lonely.frame.onnx").unlink()
+    with pytest.raises(ModelError, match="lonely.frame.onnx"):
+        EstimatorModel.load(head)
+
+
+def test_passing_the_frame_encoder_says_which_file_to_pass(tmp_path):
+    build_streaming_model(tmp_path, name="s")
+    with pytest.raises(ModelError, match=r"s\.onnx"):
+        EstimatorModel.load(tmp_path / "s.frame.onnx")
+
+
+# --------------------------------------------------------------------------- images
+
+
+def image(height, width, encoding, data, step=None, bigendian=False):
+    depth = {"mono8": 1, "8UC1": 1, "mono16": 2, "16UC1": 2, "rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4}
+    step = width * depth.get(encoding, 1) if step is None else step
+    return types.SimpleNamespace(height=height, width=width, encoding=encoding, step=step, data=data,
+                                 is_bigendian=bigendian)
+
+
+def test_mono8_threshold():
+    data = np.array([[0, 127, 128, 255]], np.uint8)
+    assert image_to_mask(image(1, 4, "mono8", data.tobytes()), 100).tolist() == [[0, 0, 255, 255]]
+
+
+def test_mono8_with_row_padding():
+    data = np.array([[255, 0, 9, 9], [0, 255, 9, 9]], np.uint8)
+    mask = image_to_mask(image(2, 2, "mono8", data.tobytes(), step=4), 100)
+    assert mask.tolist() == [[255, 0], [0, 255]]
+
+
+@pytest.mark.parametrize("bigendian", [False, True])
+def test_mono16_threshold_both_endiannesses(bigendian):
+    values = np.array([[0, 127 * 257, 127 * 257 + 1, 65535]], ">u2" if bigendian else "<u2")
+    msg = image(1, 4, "16UC1", values.tobytes(), bigendian=bigendian)
+    assert image_to_mask(msg, 100).tolist() == [[0, 0, 255, 255]]
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8"])
+def test_colour_uses_brightest_channel(encoding):
+    channels = 4 if encoding == "rgba8" else 3
+    data = np.zeros((1, 2, channels), np.uint8)
+    data[0, 1, 1] = 200
+    if channels == 4:
+        data[0, 0, 3] = 255  # alpha alone is not object
+    assert image_to_mask(image(1, 2, encoding, data.tobytes()), 100).tolist() == [[0, 255]]
+
+
+class UntouchableData(types.SimpleNamespace):
+    @property
+    def data(self):
+        raise AssertionError("data touched before the header was checked")
+
+
+@pytest.mark.parametrize("fields,kind", [
+    (dict(height=100_000, width=100_000, encoding="mono8", step=100_000), "too_large"),
+    (dict(height=10, width=10, encoding="32FC1", step=40), "encoding"),
+    (dict(height=10, width=10, encoding="rgb8", step=10), "malformed"),
+    (dict(height=0, width=10, encoding="mono8", step=10), "empty"),
+])
+def test_bad_headers_rejected_before_touching_data(fields, kind):
+    with pytest.raises(ImageRejected) as info:
+        image_to_mask(UntouchableData(is_bigendian=False, **fields), 4096 * 4096)
+    assert info.value.kind == kind
+
+
+def test_truncated_data_rejected():
+    with pytest.raises(ImageRejected, match="data length"):
+        image_to_mask(image(4, 4, "mono8", bytes(15)), 100)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 70), st.integers(0, 70), st.sampled_from(["mono8", "mono16", "rgb8", "bgra8", "yuv422", ""]),
+       st.integers(0, 300), st.binary(max_size=5000), st.booleans())
+def test_random_images_either_convert_or_are_rejected(height, width, encoding, step, data, bigendian):
+    msg = image(height, width, encoding, data, step=step, bigendian=bigendian)
+    try:
+        mask = image_to_mask(msg, 64 * 64)
+    except ImageRejected:
+        return
+    assert mask.shape == (height, width) and mask.dtype == np.uint8 and set(np.unique(mask)) <= {0, 255}

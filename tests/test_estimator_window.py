@@ -1,0 +1,209 @@
+"""ad_estimator.window: stamp-based slots, episode restarts, output policies (pure logic)."""
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ad_estimator.window import FrameWindow, clip_stamps
+
+DT = 25_000_000  # ns
+SIZE = (128, 128)
+
+
+def feed(window, stamps, size=SIZE):
+    """Offer frames whose feature is their own stamp; returns every output."""
+    outputs = []
+    for s in stamps:
+        outputs += window.add(s, size, lambda s=s: np.array([float(s)]))
+    return outputs
+
+
+def chosen(output):
+    return [int(f[0]) if v else None for f, v in zip(output.features, output.valid)]
+
+
+def reference_slots(stamps, t0, count, tolerance):
+    """Brute force: per slot the nearest stamp within tolerance, ties to the earlier."""
+    result = []
+    for k in range(count):
+        best = min(stamps, key=lambda s: (abs(s - (t0 + k * DT)), s))
+        result.append(best if abs(best - (t0 + k * DT)) <= tolerance else None)
+    return result
+
+
+def test_exact_interval_gives_one_complete_estimate_at_frame_25():
+    window = FrameWindow(0.025, 25)
+    t0 = 1_500_000_000
+    stamps = [t0 + k * DT for k in range(25)]
+    assert feed(window, stamps[:24]) == []
+    (out,) = feed(window, stamps[24:])
+    assert out.complete and out.frames_used == 25
+    assert chosen(out) == stamps
+    assert (out.oldest_stamp_ns, out.newest_stamp_ns, out.episode_start_ns) == (t0, stamps[-1], t0)
+    assert feed(window, [t0 + 25 * DT, t0 + 26 * DT]) == []  # the episode is over; no second estimate
+
+
+def test_float_stamps_rounded_to_ns_still_settle_on_time():
+    window = FrameWindow(0.025, 25)
+    stamps = [int((1.5 * 3 + k * 0.025) * 1e9) for k in range(25)]  # float maths may lose a nanosecond
+    outs = feed(window, stamps)
+    assert len(outs) == 1 and outs[0].frames_used == 25
+
+
+def test_30fps_camera_fills_every_slot_with_the_nearest_frame():
+    window = FrameWindow(0.025, 25)
+    stamps = [round(k * 1e9 / 30) for k in range(40)]
+    (out,) = feed(window, stamps)
+    assert out.complete and out.frames_used == 25
+    assert chosen(out) == reference_slots(stamps, 0, 25, DT)
+    for k, s in enumerate(chosen(out)):
+        assert abs(s - k * DT) <= 1e9 / 60 + 1  # at most half the camera period away
+
+
+def test_slow_camera_leaves_invalid_slots_instead_of_inventing_frames():
+    window = FrameWindow(0.025, 25, slot_tolerance=0.5)
+    stamps = [k * 100_000_000 for k in range(7)]  # 10 fps
+    (out,) = feed(window, stamps)
+    assert out.complete
+    assert out.valid.tolist() == [k % 4 == 0 for k in range(25)]
+    assert out.frames_used == 7
+    assert np.all(out.features[~out.valid] == 0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(1_000_000, 45_000_000), min_size=1, max_size=60),
+       st.integers(0, 10**12), st.sampled_from([0.5, 1.0]))
+def test_jittery_stamps_match_brute_force_nearest_frame(steps, t0, tolerance):
+    window = FrameWindow(0.025, 25, gap_threshold=0.3, slot_tolerance=tolerance)
+    stamps = list(np.cumsum([t0] + steps))
+    outs = feed(window, stamps)
+    outs += window.flush()
+    last_slot = t0 + 24 * DT
+    reached = any(s >= last_slot - 1_000 or abs(s - last_slot) <= tolerance * DT for s in stamps)
+    # Exactly one estimate (the episode policy) iff the last slot was reached; it matches brute force.
+    if reached:
+        assert len(outs) == 1
+        assert chosen(outs[0]) == reference_slots(stamps, t0, 25, tolerance * DT)
+    else:
+        assert outs == []
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.integers(-50_000_000, 400_000_000), st.sampled_from([(128, 128), (64, 64)]),
+                          st.booleans()), max_size=120),
+       st.sampled_from(["episode", "anytime"]), st.integers(1, 5), st.integers(1, 25))
+def test_random_streams_keep_invariants(events, policy, every_n, min_frames):
+    """Any stamps, sizes and resets: no exception, well-formed outputs, encode at most once per frame."""
+    window = FrameWindow(0.025, 25, policy=policy, every_n=every_n, min_frames=min_frames)
+    stamp = 10**9
+    calls = 0
+    for step, size, reset in events:
+        if reset:
+            window.reset()
+        stamp += step
+
+        def encode(s=stamp):
+            nonlocal calls
+            calls += 1
+            return np.array([float(s)])
+
+        before = calls
+        for out in window.add(stamp, size, encode):
+            assert 1 <= len(out.valid) <= 25 and out.valid.any()
+            assert out.features.shape == (len(out.valid), 1)
+            assert out.oldest_stamp_ns <= out.newest_stamp_ns
+            assert out.complete == (len(out.valid) == 25)
+            used = [s for s in chosen(out) if s is not None]
+            assert used == sorted(used)  # one frame may serve two neighbouring slots
+            assert out.episode_start_ns <= out.oldest_stamp_ns
+            if policy == "anytime":
+                assert out.frames_used <= len(out.valid)
+        assert calls - before <= 1
+    assert window.stats.frames == len(events)
+
+
+@pytest.mark.parametrize("cause", ["gap", "backwards", "size", "reset"])
+def test_window_restarts(cause):
+    window = FrameWindow(0.025, 25, gap_threshold=0.3)
+    first = [k * DT for k in range(10)]
+    assert feed(window, first) == []
+    start = first[-1]
+    size = SIZE
+    if cause == "gap":
+        start += 400_000_000
+    elif cause == "backwards":
+        start -= 5 * DT
+    elif cause == "size":
+        start += DT
+        size = (64, 64)
+    else:
+        window.reset()
+        start += DT
+    second = [start + k * DT for k in range(25)]
+    (out,) = feed(window, second, size)
+    assert chosen(out) == second  # the new episode starts at its own first frame
+    expected = {"gap": "gap", "backwards": "backwards", "size": "size"}.get(cause)
+    if expected:
+        assert window.stats.restarts[expected] == 1
+
+
+def test_gap_below_threshold_does_not_restart_and_leaves_holes():
+    window = FrameWindow(0.025, 25, gap_threshold=0.3, slot_tolerance=0.5)
+    stamps = [k * DT for k in range(25) if not 5 <= k < 12]  # 0.2 s hole
+    (out,) = feed(window, stamps)
+    assert out.frames_used == 18 and not out.valid[5:12].any()
+    assert "gap" not in window.stats.restarts
+
+
+def test_duplicate_stamp_is_ignored():
+    window = FrameWindow(0.025, 25)
+    feed(window, [0, DT])
+    calls = []
+    window.add(DT, SIZE, lambda: calls.append(1) or np.zeros(1, np.float32))
+    assert calls == [] and window.stats.ignored == 1
+
+
+def test_anytime_policy_schedule():
+    window = FrameWindow(0.025, 25, policy="anytime", min_frames=10, every_n=5)
+    outs = feed(window, [k * DT for k in range(30)])
+    assert [o.frames_used for o in outs] == [10, 15, 20, 25]
+    assert [o.complete for o in outs] == [False, False, False, True]
+
+
+def test_flush_emits_the_final_estimate_when_the_last_slot_was_left_pending():
+    window = FrameWindow(0.025, 25)
+    stamps = [k * DT - (2_000_000 if k == 24 else 0) for k in range(25)]  # last frame 2 ms early
+    assert feed(window, stamps) == []  # a later frame could still be nearer to slot 24
+    (out,) = window.flush()
+    assert out.complete and chosen(out) == stamps
+    assert window.flush() == []
+
+
+def test_restart_flushes_the_previous_episode():
+    window = FrameWindow(0.025, 25)
+    stamps = [k * DT - (2_000_000 if k == 24 else 0) for k in range(25)]
+    feed(window, stamps)
+    outs = feed(window, [stamps[-1] + 10**9])
+    assert len(outs) == 1 and outs[0].complete and outs[0].episode_start_ns == 0
+
+
+def test_encode_only_for_frames_that_land_in_slots():
+    window = FrameWindow(0.025, 25, slot_tolerance=0.1)
+    calls = []
+    for s in range(0, 26 * DT, DT // 5):  # 200 fps
+        window.add(s, SIZE, lambda s=s: calls.append(s) or np.zeros(1, np.float32))
+    assert calls == [k * DT for k in range(25)]
+
+
+def test_bad_configuration_is_refused():
+    with pytest.raises(ValueError, match="policy"):
+        FrameWindow(0.025, 25, policy="sometimes")
+    with pytest.raises(ValueError, match="gap_threshold"):
+        FrameWindow(0.025, 25, gap_threshold=0.01)
+
+
+def test_clip_stamps():
+    assert clip_stamps([0, 0, 0], 0.025) == [0, DT, 2 * DT]
+    assert clip_stamps([5, 40, 90], 0.025) == [5, 40, 90]
+    with pytest.raises(ValueError, match="increasing"):
+        clip_stamps([5, 4, 90], 0.025)
