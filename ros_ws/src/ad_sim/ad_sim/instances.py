@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import materials
+from . import materials, mpm
 from .render import Camera, sample_cameras
 
 SPLITS = ("train", "seen", "unseen", "custom")
@@ -26,9 +26,9 @@ BENCHMARK_SPLITS = ("train", "seen", "unseen")
 # The normalised mesh ([-0.5, 0.5]^3) is scaled by SCALE into the unit-cube domain. At particle
 # spacing dx/2 = 1/64 this gives ~3k (thin shapes) to ~11k (box) particles.
 SCALE = 0.35
-PARTICLE_SPACING = 0.5 / materials.GRID_RESOLUTION
-# Ground and walls: the solver's boundary is 3 grid cells thick on every side.
-BOUNDARY = 3.0 / materials.GRID_RESOLUTION
+PARTICLE_SPACING = 0.5 * mpm.DX
+# Ground and walls: the solver's boundary layer is BOUNDARY_CELLS grid cells thick on every side.
+BOUNDARY = mpm.BOUNDARY_CELLS * mpm.DX
 WALL_MARGIN = 0.02  # keep the object this far from the walls at t = 0
 DROP_GAP = (0.05, 0.25)  # object's lowest point above the ground at t = 0
 XY_JITTER = 0.1  # centre of the object within +-XY_JITTER of the domain's middle
@@ -280,6 +280,30 @@ def _instance_from_entry(entry, index: int, source: str) -> Instance:
     )
 
 
+def _yaml_loader():
+    """SafeLoader that also reads 1.5e6 as a float (PyYAML's YAML 1.1 rules want 1.5e+6)."""
+    import re
+
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    Loader.add_implicit_resolver(
+        "tag:yaml.org,2002:float",
+        re.compile(
+            r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+            |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+            |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+            |[-+]?\.(?:inf|Inf|INF)
+            |\.(?:nan|NaN|NAN))$""",
+            re.X,
+        ),
+        list("-+0123456789."),
+    )
+    return Loader
+
+
 def load_instance_file(path: str | Path) -> list[Instance]:
     """Instances of a YAML (.yaml/.yml) or JSON (.json) file: a list of entries (SPEC 4).
 
@@ -296,7 +320,7 @@ def load_instance_file(path: str | Path) -> list[Instance]:
         import yaml
 
         try:
-            entries = yaml.safe_load(text)
+            entries = yaml.load(text, Loader=_yaml_loader())
         except yaml.YAMLError as error:
             raise ValueError(f"{path}: not valid YAML: {error}") from None
     else:

@@ -1,0 +1,70 @@
+#!/usr/bin/env python3
+"""Simulate one episode and save a PNG contact sheet of its masks (one row per view, one column per frame).
+
+Examples:
+  scripts/preview_episode.py --size tiny --split unseen --index 0 -o /tmp/episode.png
+  scripts/preview_episode.py --instances my_instances.yaml --index 2 --views 4 --full -o /tmp/episode.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "ros_ws" / "src" / "ad_sim"))
+
+from ad_sim.episode import Episode, simulate_batch  # noqa: E402
+from ad_sim.instances import BENCHMARK_SIZES, BENCHMARK_SPLITS, benchmark, load_instance_file  # noqa: E402
+
+HEADER = 24  # pixels of caption above the sheet
+GAP = 2  # pixels between tiles
+
+
+def contact_sheet(episode: Episode, full: bool = False) -> np.ndarray:
+    """Grey image: rows = views, columns = frames, mid-grey gaps, caption on top."""
+    masks = episode.masks_full if full else episode.masks
+    views, frames, height, width = masks.shape
+    sheet = np.full((HEADER + views * (height + GAP), frames * (width + GAP)), 128, dtype=np.uint8)
+    for v in range(views):
+        for t in range(frames):
+            y, x = HEADER + v * (height + GAP), t * (width + GAP)
+            sheet[y : y + height, x : x + width] = masks[v, t]
+    instance = episode.instance
+    values = ", ".join(f"{k}={v:.3g}" for k, v in instance.parameters.items())
+    caption = f"{instance.episode_id}  {instance.material}: {values}  seed {instance.seed}  substeps/frame {episode.substeps_per_frame}"
+    cv2.putText(sheet, caption, (4, HEADER - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.5, 255, 1, cv2.LINE_AA)
+    return sheet
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--instances", type=Path, help="instance file (YAML/JSON); default: a benchmark split")
+    parser.add_argument("--size", default="tiny", choices=sorted(BENCHMARK_SIZES), help="benchmark size (default tiny)")
+    parser.add_argument("--split", default="unseen", choices=BENCHMARK_SPLITS, help="benchmark split (default unseen)")
+    parser.add_argument("--index", type=int, default=0, help="which instance of the list (default 0)")
+    parser.add_argument("--views", type=int, help="number of views (default: the instance's)")
+    parser.add_argument("--full", action="store_true", help="show the 512x512 masks instead of the 128x128 ones")
+    parser.add_argument("--device", default="cpu", help="Warp device, e.g. cpu or cuda:0 (default cpu)")
+    parser.add_argument("-o", "--output", type=Path, default=Path("episode.png"), help="PNG to write (default episode.png)")
+    args = parser.parse_args(argv)
+
+    instances = load_instance_file(args.instances) if args.instances else benchmark(args.size, args.split)
+    if not 0 <= args.index < len(instances):
+        parser.error(f"--index must be in [0, {len(instances)}); the list has {len(instances)} instances")
+    instance = instances[args.index]
+    print(f"simulating {instance.episode_id} ({instance.shape}, {instance.material}) on {args.device}", file=sys.stderr)
+    (episode,) = simulate_batch([instance], device=args.device, full_masks=args.full, progress=True, views=args.views)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(args.output), contact_sheet(episode, args.full)):
+        raise SystemExit(f"could not write {args.output}; check the folder exists and the name ends in .png")
+    print(args.output)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
