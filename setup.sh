@@ -79,19 +79,24 @@ else
 fi
 
 # 4. colcon build -----------------------------------------------------------------------------
-# With --symlink-install python edits need no rebuild; a rebuild is needed when the build files,
-# the interfaces or the set of files (new data files, executables) change.
+# With --symlink-install, python and package-data edits need no rebuild (packages are installed in
+# develop mode from the source tree); build files, interfaces and ament markers do.
 build_fingerprint() {
     echo "venv=$VENV requirements=$REQ_HASH"
     sha256sum "$ROOT/setup.sh"
     cd "$WS/src"
-    find . \( -name __pycache__ -o -name '*.egg-info' \) -prune -o -type f ! -name '*.pyc' -print | LC_ALL=C sort
     find . \( -name package.xml -o -name CMakeLists.txt -o -name setup.py -o -name setup.cfg \
-              -o -name '*.msg' -o -name '*.srv' -o -name '*.action' \) -type f -print0 \
+              -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -path '*/resource/*' \) -type f -print0 \
         | LC_ALL=C sort -z | xargs -0 sha256sum
 }
 FINGERPRINT="$(build_fingerprint | sha256sum | cut -d' ' -f1)"
-if stamp_matches "$BUILD_STAMP" "$FINGERPRINT" && [ -f "$WS/install/setup.bash" ]; then
+all_installed() {
+    [ -f "$WS/install/setup.bash" ] || return 1
+    for package_xml in "$WS"/src/*/package.xml; do
+        [ -d "$WS/install/$(basename "$(dirname "$package_xml")")" ] || return 1
+    done
+}
+if stamp_matches "$BUILD_STAMP" "$FINGERPRINT" && all_installed; then
     skip "ros_ws build"
 else
     step "colcon build of ros_ws (ad_msgs, ad_sim, ad_estimator)"
