@@ -1,5 +1,171 @@
-"""Placeholder so the workspace builds; its owner replaces this module."""
+"""Bulk generation of a benchmark split (or an instance file) straight to rosbag2 MCAP bags.
+
+Same content as recording the simulator node's topics (ad_sim.messages is shared), without
+DDS. Output is sharded: shard i of N holds instances i, i+N, i+2N, ... of the list in
+OUT/<name>-<i>of<N>/, a bag folder. A finished shard has a DONE marker and is skipped when the
+command is run again; a shard without it (a killed run) is deleted and redone.
+Deterministic: the same arguments give byte-identical bags.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import sys
+from pathlib import Path
+
+from . import messages
+from .rosbag import BagError, BagWriter, qos_profile
+
+DONE_MARKER = "DONE"
+DEFAULT_BATCH = {"cpu": 8, "cuda": 256}
 
 
-def main() -> None:
-    raise SystemExit("not implemented yet")
+def parse_shard(text: str) -> tuple[int, int]:
+    """'i/N' -> (i, N) with 0 <= i < N."""
+    try:
+        index, count = (int(part) for part in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--shard expects i/N (e.g. 0/4), got {text!r}") from None
+    if count < 1 or not 0 <= index < count:
+        raise argparse.ArgumentTypeError(f"--shard {text}: need N >= 1 and 0 <= i < N")
+    return index, count
+
+
+def shard_dir(out: Path, name: str, index: int, count: int) -> Path:
+    return out / f"{name}-{index}of{count}"
+
+
+def is_done(folder: Path) -> bool:
+    return (folder / DONE_MARKER).is_file()
+
+
+def _file_digests(folder: Path) -> dict[str, str]:
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.glob("*.mcap"))}
+
+
+def write_episodes(writer: BagWriter, episodes, first_index: int, prefix: str = messages.DEFAULT_PREFIX) -> int:
+    """Write episodes to an open bag, numbering them from first_index; returns messages written."""
+    written = 0
+    for offset, episode in enumerate(episodes):
+        types = messages.topic_types(len(episode.cameras), prefix)
+        for topic, stamp, message in messages.episode_messages(episode, first_index + offset, prefix=prefix):
+            if not writer.has_topic(topic):
+                writer.add_topic(topic, types[topic], [qos_profile(**messages.topic_qos(topic, prefix))])
+            writer.write(topic, stamp, message)
+            written += 1
+    return written
+
+
+def generate_shard(
+    instances: list,
+    folder: Path,
+    *,
+    device: str = "cpu",
+    views: int | None = None,
+    batch: int | None = None,
+    max_bag_size: int = 0,
+    compression: str = "zstd",
+    custom_data: dict[str, str] | None = None,
+    progress: bool = True,
+) -> bool:
+    """Simulate `instances` and write them as one bag folder; False if it was already done."""
+    from tqdm import tqdm
+
+    from .episode import simulate_batch
+
+    if is_done(folder):
+        return False
+    if folder.exists():
+        shutil.rmtree(folder)  # a partial shard of a killed run
+    batch = batch or DEFAULT_BATCH["cuda" if device.startswith("cuda") else "cpu"]
+    writer = BagWriter(folder, max_bag_size=max_bag_size, compression=compression, custom_data=custom_data)
+    with tqdm(total=len(instances), desc=folder.name, unit="episode", disable=not progress) as bar:
+        for start in range(0, len(instances), batch):
+            episodes = simulate_batch(instances[start : start + batch], device=device, views=views)
+            write_episodes(writer, episodes, start)
+            bar.update(len(episodes))
+    writer.close()
+    done = {"episodes": len(instances), "messages": writer.message_count, "sha256": _file_digests(folder)}
+    (folder / DONE_MARKER).write_text(json.dumps(done, indent=2) + "\n")
+    return True
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ros2 run ad_sim generate",
+        description=__doc__.split("\n\n")[0],
+        epilog="Example: generate --size small --split train --shards 4 --out bags/small --device cuda",
+    )
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--instances", type=Path, help="instance file (YAML or JSON, SPEC 4) instead of a benchmark split")
+    source.add_argument("--list-shapes", action="store_true", help="print the shape library, one JSON object per line, and exit")
+    parser.add_argument("--size", default="tiny", choices=("tiny", "small", "paper"), help="benchmark size (default %(default)s)")
+    parser.add_argument("--split", default="unseen", choices=("train", "seen", "unseen"), help="benchmark split (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="base seed of the benchmark (default %(default)s)")
+    shards = parser.add_mutually_exclusive_group()
+    shards.add_argument("--shard", type=parse_shard, help="write only shard i of N, as i/N")
+    shards.add_argument("--shards", type=int, default=1, help="write all N shards, one after another (default %(default)s)")
+    parser.add_argument("--out", type=Path, default=Path("bags"), help="output folder for the shard bag folders (default %(default)s)")
+    parser.add_argument("--device", default="cpu", help="Warp device: cpu, cuda or cuda:<n> (default %(default)s)")
+    parser.add_argument("--views", type=int, help="cameras per episode (default: 4 for train, 1 otherwise)")
+    parser.add_argument("--batch", type=int, help=f"episodes per simulator batch (default {DEFAULT_BATCH})")
+    parser.add_argument("--limit", type=int, help="use only the first n instances (quick looks)")
+    parser.add_argument("--max-bag-size", type=int, default=0, help="split .mcap files at this many bytes (0: never)")
+    parser.add_argument("--compression", default="zstd", choices=("zstd", "lz4", "none"), help="chunk compression (default %(default)s)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.list_shapes:
+        from .shapes import shape_records
+
+        for record in shape_records():
+            print(json.dumps(record))
+        return 0
+    from .instances import benchmark, load_instance_file
+
+    try:
+        if args.instances:
+            instances, name = load_instance_file(args.instances), args.instances.stem
+        else:
+            instances, name = benchmark(args.size, args.split, args.seed), args.split
+    except (OSError, ValueError) as exc:
+        parser.error(str(exc))
+    if args.limit is not None:
+        instances = instances[: args.limit]
+    if args.views is not None and args.views < 1:
+        parser.error("--views must be >= 1")
+    if args.shards < 1:
+        parser.error("--shards must be >= 1")
+    index_range, count = ((args.shard[0],), args.shard[1]) if args.shard else (range(args.shards), args.shards)
+    source = {"instances": str(args.instances)} if args.instances else {"size": args.size, "split": args.split, "seed": str(args.seed)}
+    for index in index_range:
+        folder = shard_dir(args.out, name, index, count)
+        custom = {"generator": "ad_sim.generate", "shard": f"{index}/{count}", **source}
+        try:
+            wrote = generate_shard(
+                instances[index::count],
+                folder,
+                device=args.device,
+                views=args.views,
+                batch=args.batch,
+                max_bag_size=args.max_bag_size,
+                compression=args.compression,
+                custom_data=custom,
+                progress=not args.quiet,
+            )
+        except BagError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        print(f"{folder}: {'written' if wrote else 'already done, skipped'}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,5 +1,163 @@
-"""Placeholder so the workspace builds; its owner replaces this module."""
+"""`ros2 run ad_sim record`: records topics into a rosbag2-compatible MCAP bag (ad_sim.rosbag).
+
+Subscribes raw (CDR bytes, no deserialisation) with KEEP_ALL history and the publishers'
+reliability and durability (transient local for /ad_sim/instance), discovering topics as
+they appear: by default every simulator topic under topic_prefix (any number of views),
+or the `topics` parameter. Log time of a message is its header stamp (simulated time, so a
+recording made at any speed equals `generate`'s bag) unless stamp_source is "receive";
+publish time is always the receive wall time. SIGINT/SIGTERM finalise the bag; a kill -9
+leaves every flushed chunk readable (chunks are flushed every flush_period seconds).
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from datetime import datetime, timezone
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+
+from . import messages
+from .rosbag import BagError, BagWriter, header_stamp_ns, load_schema, qos_profile, starts_with_header
+from .sim_node import import_message_class
+
+DRAIN_IDLE = 0.3  # s without incoming work after a stop signal before the bag is closed
 
 
-def main() -> None:
-    raise SystemExit("not implemented yet")
+def _duration(duration) -> dict:
+    nanoseconds = duration.nanoseconds
+    return {"sec": nanoseconds // 1_000_000_000, "nsec": nanoseconds % 1_000_000_000}
+
+
+def offered_qos(endpoint_qos) -> dict:
+    """rosbag2 description of a discovered publisher's QoS."""
+    return qos_profile(
+        reliability="reliable" if endpoint_qos.reliability == ReliabilityPolicy.RELIABLE else "best_effort",
+        durability="transient_local" if endpoint_qos.durability == DurabilityPolicy.TRANSIENT_LOCAL else "volatile",
+        history="keep_all" if endpoint_qos.history == HistoryPolicy.KEEP_ALL else "keep_last",
+        depth=endpoint_qos.depth,
+        deadline=_duration(endpoint_qos.deadline),
+        lifespan=_duration(endpoint_qos.lifespan),
+        liveliness_lease_duration=_duration(endpoint_qos.liveliness_lease_duration),
+    )
+
+
+class RecordNode(Node):
+    def __init__(self):
+        super().__init__("ad_sim_record")
+        p = self.declare_parameter
+        p("output", "")  # bag folder; empty: bags/record-<UTC time>
+        p("topics", [""])  # topics to record; empty: every simulator topic under topic_prefix
+        p("topic_prefix", messages.DEFAULT_PREFIX)
+        p("max_bag_size", 0)  # bytes per .mcap file, 0: never split
+        p("compression", "zstd")  # zstd | lz4 | none (chunk compression)
+        p("stamp_source", "header")  # header | receive: what becomes the log time
+        p("discovery_period", 0.2)  # s between looks for new topics
+        p("flush_period", 1.0)  # s between chunk flushes (bounds what a kill -9 loses)
+        get = lambda name: self.get_parameter(name).value  # noqa: E731
+        output = get("output") or f"bags/record-{datetime.now(timezone.utc):%Y%m%d-%H%M%S}"
+        self.wanted = {t for t in get("topics") if t}
+        self.prefix = get("topic_prefix").rstrip("/")
+        self.stamp_source = get("stamp_source")
+        if self.stamp_source not in ("header", "receive"):
+            raise BagError(f"stamp_source must be 'header' or 'receive', got {self.stamp_source!r}")
+        self.writer = BagWriter(output, max_bag_size=get("max_bag_size"), compression=get("compression"))
+        self.received: dict[str, int] = {}
+        self.written: dict[str, int] = {}
+        self.subscriptions_by_topic = {}
+        self._unflushed = False
+        self.create_timer(get("discovery_period"), self.discover)
+        self.create_timer(get("flush_period"), self.flush)
+        self.get_logger().info(
+            f"recording {'topics ' + ', '.join(sorted(self.wanted)) if self.wanted else 'simulator topics under ' + self.prefix} to {output}"
+        )
+
+    def _wanted(self, topic: str) -> bool:
+        return topic in self.wanted if self.wanted else messages.is_simulator_topic(topic, self.prefix)
+
+    def discover(self) -> None:
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self.subscriptions_by_topic or not self._wanted(topic):
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if not publishers:
+                continue  # only subscribers so far
+            self._subscribe(topic, types[0], publishers)
+
+    def _subscribe(self, topic: str, type_name: str, publishers) -> None:
+        schema = load_schema(type_name)
+        use_header = self.stamp_source == "header" and starts_with_header(schema.definition)
+        # Like rosbag2: offer what every publisher can match, with a history that never drops.
+        reliable = all(info.qos_profile.reliability == ReliabilityPolicy.RELIABLE for info in publishers)
+        latched = all(info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for info in publishers)
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_ALL,
+            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+        )
+        self.writer.add_topic(topic, type_name, [offered_qos(info.qos_profile) for info in publishers], schema)
+        self.received[topic] = self.written[topic] = 0
+
+        def on_message(data: bytes) -> None:
+            received_ns = time.time_ns()
+            self.received[topic] += 1
+            log_time = header_stamp_ns(data) if use_header else received_ns
+            self.writer.write(topic, log_time, data, publish_time_ns=received_ns)
+            self.written[topic] += 1
+            self._unflushed = True
+
+        self.subscriptions_by_topic[topic] = self.create_subscription(
+            import_message_class(type_name), topic, on_message, qos, raw=True
+        )
+        self.get_logger().info(f"subscribed to {topic} [{type_name}]")
+
+    def flush(self) -> None:
+        if self._unflushed:
+            self.writer.flush()
+            self._unflushed = False
+
+    def close(self) -> None:
+        self.writer.close()
+        self.get_logger().info(
+            f"bag {self.writer.path}: received {sum(self.received.values())}, "
+            f"written {sum(self.written.values())} messages on {len(self.written)} topics"
+        )
+        for topic in sorted(self.written):
+            self.get_logger().info(f"  {topic}: in {self.received[topic]} out {self.written[topic]}")
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    node = None
+    try:
+        node = RecordNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+        # Take what already arrived before closing the bag.
+        idle_since, seen = time.monotonic(), sum(node.received.values())
+        while time.monotonic() - idle_since < DRAIN_IDLE:
+            executor.spin_once(timeout_sec=0.05)
+            if sum(node.received.values()) != seen:
+                idle_since, seen = time.monotonic(), sum(node.received.values())
+        node.close()
+    except BagError as exc:
+        print(f"ad_sim record: {exc}")
+        raise SystemExit(2) from None
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

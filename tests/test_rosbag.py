@@ -1,0 +1,271 @@
+"""ad_sim.rosbag: rosbag2 layout, schemas, round trips, splitting, independent reader, errors."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from mcap.reader import make_reader
+from mcap.writer import Writer
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+from sim_fixtures import as_plain, fabricated_episode
+
+from ad_sim import messages, rosbag
+from ad_sim.generate import write_episodes
+from ad_sim.rosbag import BagError, BagReader, BagWriter, group_episodes
+
+DELIMITER = "=" * 80
+
+
+def write_fabricated_bag(path: Path, episodes: int = 2, views: int = 1, **writer_options) -> list[tuple[str, int, dict]]:
+    """A bag of fabricated episodes; returns what was written, in order."""
+    eps = [fabricated_episode(seed, views, material=("jelly", "plasticine", "sand")[seed % 3]) for seed in range(episodes)]
+    with BagWriter(path, **writer_options) as writer:
+        write_episodes(writer, eps, 0)
+    return [item for index, episode in enumerate(eps) for item in messages.episode_messages(episode, index)]
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory) -> tuple[Path, list]:
+    path = tmp_path_factory.mktemp("bags") / "two"
+    return path, write_fabricated_bag(path, episodes=2, views=2)
+
+
+def test_vendored_schemas_equal_installed_interfaces():
+    for type_name in rosbag.VENDORED_TYPES:
+        vendored = rosbag.load_schema(type_name)
+        assert vendored.definition == rosbag.build_message_definition(type_name)
+        assert vendored.type_hash == rosbag.installed_type_hash(type_name)
+        assert vendored.type_hash.startswith("RIHS01_") and len(vendored.type_hash) == 7 + 64
+
+
+def test_definitions_carry_every_dependency_once():
+    definition = rosbag.load_schema("ad_msgs/msg/SimInstance").definition
+    names = [line[5:] for line in definition.splitlines() if line.startswith("MSG: ")]
+    assert sorted(names) == sorted(
+        ["geometry_msgs/Pose", "geometry_msgs/Point", "geometry_msgs/Quaternion", "geometry_msgs/Twist",
+         "geometry_msgs/Vector3", "std_msgs/Header", "builtin_interfaces/Time"]
+    )
+    lines = definition.splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith("MSG: "):
+            assert lines[i - 1] == DELIMITER
+    assert not lines[0].startswith("MSG")  # the top-level type comes first, without delimiter
+    assert rosbag.starts_with_header(definition)
+
+
+def test_metadata_yaml_is_rosbag2_format_9(bag):
+    path, written = bag
+    info = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["version"] == 9 and info["storage_identifier"] == "mcap" and info["ros_distro"] == "jazzy"
+    assert info["relative_file_paths"] == ["two_0.mcap"] and info["files"][0]["path"] == "two_0.mcap"
+    assert info["message_count"] == len(written) == info["files"][0]["message_count"]
+    stamps = [stamp for _, stamp, _ in written]
+    assert info["starting_time"]["nanoseconds_since_epoch"] == min(stamps)
+    assert info["duration"]["nanoseconds"] == max(stamps) - min(stamps)
+    topics = {t["topic_metadata"]["name"]: t for t in info["topics_with_message_count"]}
+    assert set(topics) == set(messages.topic_types(2))
+    instance = topics["/ad_sim/instance"]
+    assert instance["message_count"] == 2
+    assert instance["topic_metadata"]["type"] == "ad_msgs/msg/SimInstance"
+    assert instance["topic_metadata"]["serialization_format"] == "cdr"
+    assert instance["topic_metadata"]["type_description_hash"] == rosbag.load_schema("ad_msgs/msg/SimInstance").type_hash
+    qos = instance["topic_metadata"]["offered_qos_profiles"][0]
+    assert qos["durability"] == "transient_local" and qos["reliability"] == "reliable"
+    assert topics["/ad_sim/particles"]["topic_metadata"]["offered_qos_profiles"][0]["durability"] == "volatile"
+    assert topics["/ad_sim/particles"]["message_count"] == 50
+    assert "compression_format" in info and "compression_mode" in info and "custom_data" in info
+
+
+def test_mcap_records_are_what_rosbag2_writes(bag):
+    path, _ = bag
+    with open(path / "two_0.mcap", "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        assert {s.name for s in summary.schemas.values()} == set(rosbag.VENDORED_TYPES)
+        assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+        for channel in summary.channels.values():
+            assert channel.message_encoding == "cdr"
+            profiles = yaml.safe_load(channel.metadata["offered_qos_profiles"])
+            assert profiles[0]["reliability"] == "reliable"
+            assert channel.metadata["topic_type_hash"] == rosbag.load_schema(summary.schemas[channel.schema_id].name).type_hash
+        assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {"zstd"}
+        stored = {m.name: m.metadata for m in reader.iter_metadata()}
+        assert yaml.safe_load(stored["rosbag2"]["serialized_metadata"])["version"] == 9
+
+
+def test_round_trip_decodes_to_the_written_dicts_in_log_time_order(bag):
+    path, written = bag
+    read = list(BagReader(path))
+    assert [(t, s) for t, s, _ in read] == [(t, s) for t, s, _ in written]
+    for (_, _, decoded), (_, _, original) in zip(read, written):
+        assert as_plain(decoded) == as_plain(original)
+    raw = list(BagReader(path, raw=True, topics=["/ad_sim/instance"]))
+    assert len(raw) == 2 and all(isinstance(m.message, bytes) for m in raw)
+
+
+def test_split_by_size_and_read_back_across_files(tmp_path):
+    path = tmp_path / "split"
+    written = write_fabricated_bag(path, episodes=2, views=1, max_bag_size=300_000, chunk_size=100_000)
+    files = sorted(path.glob("*.mcap"))
+    assert len(files) >= 3
+    info = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["relative_file_paths"] == [f"split_{i}.mcap" for i in range(len(files))]
+    assert sum(f["message_count"] for f in info["files"]) == len(written)
+    assert all(f.stat().st_size < 300_000 + 200_000 for f in files)
+    read = list(BagReader(path, raw=True))
+    assert [(t, s) for t, s, _ in read] == [(t, s) for t, s, _ in written]
+
+
+def test_reader_orders_by_log_time_across_chunks(tmp_path):
+    path = tmp_path / "unordered"
+    schema = rosbag.load_schema("sensor_msgs/msg/Image")
+    stamps = [5, 1, 4, 2, 3, 0, 9, 7, 8, 6] * 3
+    with BagWriter(path, chunk_size=1) as writer:  # one message per chunk
+        writer.add_topic("/a", schema.name)
+        for i, stamp in enumerate(stamps):
+            writer.write("/a", stamp, messages.mask_message(np.full((1, 1), i, np.uint8), stamp, "f"))
+    read = list(BagReader(path))
+    assert [s for _, s, _ in read] == sorted(stamps)
+    # ties keep file order
+    assert [m.message.data[0] for m in read if m.log_time_ns == 5] == [i for i, s in enumerate(stamps) if s == 5]
+
+
+def test_independent_reader_decodes_with_types_from_the_bag(bag):
+    path, written = bag
+    typestore = get_typestore(Stores.EMPTY)
+    with AnyReader([path], default_typestore=typestore) as reader:
+        for connection in reader.connections:
+            # Register the types from the definitions embedded in the bag, nothing else.
+            typestore.register(get_types_from_msg(connection.msgdef.data, connection.msgtype))
+        expected = iter(written)
+        count = 0
+        for connection, timestamp, data in reader.messages():
+            topic, stamp, original = next(expected)
+            assert (connection.topic, timestamp) == (topic, stamp)
+            decoded = typestore.deserialize_cdr(data, connection.msgtype)
+            assert as_plain(decoded) == as_plain(original)
+            count += 1
+        assert count == len(written)
+
+
+def test_group_episodes_assigns_frames_by_stamp(bag):
+    path, _ = bag
+    episodes = list(group_episodes(BagReader(path)))
+    assert [e.instance.episode_index for e in episodes] == [0, 1]
+    for episode in episodes:
+        assert len(episode.messages["/ad_sim/particles"]) == 25
+        assert len(episode.messages["/ad_sim/view_1/mask"]) == 25
+        assert episode.messages["/ad_sim/particles"][0][0] == episode.stamp_ns
+    # A recorder may store frame 0 of an episode before its instance message (same stamp).
+    stream = list(BagReader(path))
+    second = next(i for i, m in enumerate(stream) if m.topic == "/ad_sim/instance" and m.log_time_ns > 0)
+    stream.insert(second + 3, stream.pop(second))
+    regrouped = list(group_episodes(stream))
+    assert [len(e.messages["/ad_sim/view_0/mask"]) for e in regrouped] == [25, 25]
+
+
+# ------------------------------------------------------------------------------- errors
+
+
+def test_missing_and_empty_bags_are_clear_errors(tmp_path):
+    with pytest.raises(BagError, match="does not exist"):
+        BagReader(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(BagError, match="no .mcap"):
+        BagReader(tmp_path / "empty")
+    (tmp_path / "text.mcap").write_text("hello, this is not mcap")
+    with pytest.raises(BagError, match="not an MCAP file"):
+        list(BagReader(tmp_path / "text.mcap"))
+    with pytest.raises(BagError, match="already exists"):
+        BagWriter(tmp_path)  # not empty
+
+
+def test_truncated_file_is_an_error_and_recoverable(tmp_path):
+    path = tmp_path / "trunc"
+    written = write_fabricated_bag(path, episodes=2, chunk_size=50_000)
+    file = path / "trunc_0.mcap"
+    data = file.read_bytes()
+    file.write_bytes(data[: len(data) // 2])
+    with pytest.raises(BagError, match=r"trunc_0\.mcap is truncated"):
+        list(BagReader(path))
+    with pytest.warns(UserWarning, match="truncated"):
+        recovered = list(BagReader(path, recover=True))
+    assert 0 < len(recovered) < len(written)
+    # What is recovered is exactly a prefix of what was written.
+    assert [(t, s) for t, s, _ in recovered] == [(t, s) for t, s, _ in written[: len(recovered)]]
+
+
+def test_corrupt_chunk_names_file_and_offset(tmp_path):
+    path = tmp_path / "corrupt"
+    written = write_fabricated_bag(path, episodes=1, chunk_size=50_000)
+    file = path / "corrupt_0.mcap"
+    with open(file, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    target = chunks[len(chunks) // 2]
+    data = bytearray(file.read_bytes())
+    middle = target.chunk_start_offset + target.chunk_length // 2
+    data[middle : middle + 64] = bytes(64)
+    file.write_bytes(bytes(data))
+    with pytest.raises(BagError, match=rf"corrupt record \(opcode 0x06\) at byte {target.chunk_start_offset}"):
+        list(BagReader(path))
+    with pytest.warns(UserWarning, match="corrupt"):
+        recovered = list(BagReader(path, recover=True))
+    assert len(recovered) < len(written)
+
+
+def test_unknown_schema_encoding_is_a_clear_error(tmp_path):
+    path = tmp_path / "foreign.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f)
+        writer.start(profile="", library="test")
+        schema = writer.register_schema("Thing", "jsonschema", b"{}")
+        channel = writer.register_channel("/thing", "json", schema)
+        writer.add_message(channel, 1, b"{}", 1)
+        writer.finish()
+    with pytest.raises(BagError, match="only ros2msg/cdr"):
+        list(BagReader(path))
+    assert [m.message for m in BagReader(path, raw=True)] == [b"{}"]
+
+
+def test_killed_writer_leaves_flushed_chunks_readable(tmp_path):
+    """kill -9 of a process writing a bag: every flushed chunk reads back with recover=True."""
+    path = tmp_path / "killed"
+    script = textwrap.dedent(
+        f"""
+        import sys, time
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        from sim_fixtures import fabricated_episode
+        from ad_sim.generate import write_episodes
+        from ad_sim.rosbag import BagWriter
+        writer = BagWriter({str(path)!r})
+        for index in range(1000):
+            write_episodes(writer, [fabricated_episode(index % 3)], index)
+            writer.flush()
+            print(index, writer.message_count, flush=True)
+        """
+    )
+    process = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    flushed = 0
+    for line in process.stdout:
+        flushed = int(line.split()[1])
+        if flushed >= 3 * 76:
+            break
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    with pytest.raises(BagError, match="truncated"):
+        list(BagReader(path))
+    with pytest.warns(UserWarning):
+        recovered = list(BagReader(path, recover=True))
+    assert len(recovered) >= flushed
+    instances = [m for m in recovered if m.topic == "/ad_sim/instance"]
+    assert [m.message.episode_index for m in instances] == list(range(len(instances)))
