@@ -1,0 +1,83 @@
+"""End to end: instances -> real Warp MPM -> tracked particles and rendered masks."""
+
+import numpy as np
+import pytest
+
+from ad_sim import render
+from ad_sim.episode import Episode, sample_particles, simulate_batch
+from ad_sim.instances import Instance, benchmark
+
+FRAMES = 6  # 0.125 s: the objects are still falling or just landing
+
+
+def instances() -> list[Instance]:
+    return [
+        Instance("e2e-sphere", "custom", "sphere", "jelly", {"youngs_modulus": 2e4, "poissons_ratio": 0.3}, seed=11, views=2),
+        Instance("e2e-box", "custom", "box", "sand", {"youngs_modulus": 1e5, "poissons_ratio": 0.3, "friction_angle": 0.6}, seed=12),
+        Instance(
+            "e2e-torus", "custom", "torus", "plasticine", {"youngs_modulus": 6e4, "poissons_ratio": 0.4, "yield_stress": 800.0}, seed=13
+        ),
+    ]
+
+
+@pytest.fixture(scope="module")
+def episodes() -> list[Episode]:
+    return simulate_batch(instances(), full_masks=True, frame_count=FRAMES)
+
+
+def test_episodes_have_the_documented_shapes(episodes):
+    assert [e.instance.episode_id for e in episodes] == ["e2e-sphere", "e2e-box", "e2e-torus"]
+    for episode in episodes:
+        views = episode.instance.views
+        assert episode.positions.shape == (FRAMES, 1024, 3) and episode.positions.dtype == np.float32
+        assert episode.deformation.shape == (FRAMES, 1024, 3, 3) and episode.deformation.dtype == np.float32
+        assert episode.masks.shape == (views, FRAMES, 128, 128) and episode.masks.dtype == np.uint8
+        assert episode.masks_full.shape == (views, FRAMES, 512, 512) and episode.masks_full.dtype == np.uint8
+        assert set(np.unique(episode.masks)) == {0, 255}
+        assert len(episode.cameras) == views and episode.cameras[0].width == 128
+        assert episode.particle_count >= 1024 and episode.substeps_per_frame >= 1
+        assert np.all(np.isfinite(episode.positions)) and np.all(np.isfinite(episode.deformation))
+        # Frame 0 is the initial state: undeformed, the tracked particles are distinct sampled ones.
+        np.testing.assert_allclose(episode.deformation[0], np.broadcast_to(np.eye(3), (1024, 3, 3)), atol=1e-6)
+        assert len(np.unique(episode.positions[0], axis=0)) == 1024
+        # The 128x128 masks are the area-downsampled 512x512 ones.
+        full = episode.masks_full.reshape(-1, 512, 512)
+        np.testing.assert_array_equal(render.downsample(full).reshape(episode.masks.shape), episode.masks)
+
+
+def test_tracked_particles_span_the_sampled_object(episodes):
+    for episode in episodes:
+        particles, _ = sample_particles(episode.instance)
+        tracked = episode.positions[0]
+        # FPS picks the extremes: the tracked set's bounding box nearly equals the object's.
+        np.testing.assert_allclose(tracked.min(axis=0), particles.min(axis=0), atol=0.02)
+        np.testing.assert_allclose(tracked.max(axis=0), particles.max(axis=0), atol=0.02)
+
+
+def test_objects_fall_in_the_masks(episodes):
+    for episode in episodes:
+        z = episode.positions[:, :, 2].mean(axis=1)
+        assert z[3] < z[0] - 0.01, episode.instance.episode_id
+        for view in episode.masks:
+            assert np.all(view.reshape(FRAMES, -1).any(axis=1)), "object must be visible in every frame"
+            rows = [np.nonzero(frame)[0].mean() for frame in view]
+            # Image y points down in the optical frame, so falling moves the centroid to larger rows.
+            assert rows[3] > rows[0] + 1.0, episode.instance.episode_id
+
+
+def test_simulate_batch_is_deterministic(episodes):
+    again = simulate_batch(instances(), frame_count=FRAMES, max_batch=2)
+    for a, b in zip(episodes, again):
+        assert b.masks_full is None
+        np.testing.assert_array_equal(a.positions, b.positions)
+        np.testing.assert_array_equal(a.deformation, b.deformation)
+        np.testing.assert_array_equal(a.masks, b.masks)
+        assert a.particle_count == b.particle_count
+
+
+def test_views_override_keeps_the_seeded_cameras(episodes):
+    tiny = benchmark("tiny", "unseen")
+    assert len(tiny) == 6 and all(i.views == 1 for i in tiny)
+    sphere = instances()[0]
+    for camera, seeded in zip(episodes[0].cameras, sphere.cameras(3)):
+        np.testing.assert_array_equal(camera.pose, seeded.pose)
