@@ -119,6 +119,25 @@ def test_farthest_point_sampling_spreads_points():
         render.farthest_point_sampling(points[:100], 256)
 
 
+def test_batched_farthest_point_sampling_matches_a_reference():
+    def reference(points, count, start):
+        points = points.astype(np.float32)
+        chosen, distance = [start], np.full(len(points), np.inf, dtype=np.float32)
+        for _ in range(count - 1):
+            distance = np.minimum(distance, ((points - points[chosen[-1]]) ** 2).sum(axis=1))
+            chosen.append(int(np.argmax(distance)))
+        return np.array(chosen)
+
+    rng = np.random.default_rng(9)
+    sets = [rng.uniform(size=(n, 3)) for n in (300, 500, 420)]
+    # A lattice has many equal distances: ties go to the lowest index, as numpy's argmax does.
+    sets.append(np.stack(np.meshgrid(*[np.arange(8.0)] * 3, indexing="ij"), axis=-1).reshape(-1, 3))
+    starts = [0, 499, 17, 100]
+    batched = render.farthest_point_sampling_batch(sets, 64, starts)
+    for points, start, chosen in zip(sets, starts, batched):
+        np.testing.assert_array_equal(chosen, reference(points, 64, start))
+
+
 def test_vertex_advection_follows_particles():
     rng = np.random.default_rng(4)
     particles = rng.uniform(0.3, 0.7, size=(500, 3))

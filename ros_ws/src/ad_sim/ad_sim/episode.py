@@ -24,7 +24,7 @@ from .render import (
     RenderJob,
     advect_vertices,
     bind_vertices,
-    farthest_point_sampling,
+    farthest_point_sampling_batch,
     render_masks,
 )
 
@@ -54,11 +54,12 @@ class Episode:
 class _Prepared:
     """An instance turned into a solver scene plus what is needed to read its results."""
 
-    scene: mpm.Scene
-    tracked: np.ndarray  # (1024,) rows of the recorded set, in FPS order
-    binding: Binding  # vertex binding onto rows of the recorded set
+    scene: mpm.Scene  # record is set by _track()
+    binding: Binding  # vertex binding; onto rows of the recorded set after _track()
+    fps_start: int  # first particle of farthest point sampling
     faces: np.ndarray  # (M, 3) mesh triangles
     cameras: list[Camera]
+    tracked: np.ndarray | None = None  # (1024,) rows of the recorded set, in FPS order
 
 
 def sample_particles(instance: Instance) -> tuple[np.ndarray, float]:
@@ -78,26 +79,34 @@ def _prepare(instance: Instance, views: int | None) -> _Prepared:
     pose = instance.pose()
     mesh = shapes.load_mesh(instance.shape)
     vertices = SCALE * np.asarray(mesh.vertices) @ pose[:3, :3].T + pose[:3, 3]
-    # A second stream of the sampling seed, independent of the draws sample_volume made.
-    start = int(np.random.Generator(np.random.PCG64([instance.sampling_seed, 1])).integers(len(particles)))
-    fps = farthest_point_sampling(particles, TRACKED_PARTICLES, start)
-    binding = bind_vertices(vertices, particles)
-    record = np.union1d(fps, binding.indices.ravel())
     scene = mpm.Scene(
         positions=particles.astype(np.float32),
         velocity=np.array(instance.velocity, dtype=np.float32),
         family=instance.material,
         parameters=instance.parameters,
         particle_volume=spacing**3,
-        record=record,
     )
+    # A second stream of the sampling seed, independent of the draws sample_volume made.
+    start = int(np.random.Generator(np.random.PCG64([instance.sampling_seed, 1])).integers(len(particles)))
     return _Prepared(
         scene=scene,
-        tracked=np.searchsorted(record, fps),
-        binding=binding.reindexed(record),
+        binding=bind_vertices(vertices, particles),
+        fps_start=start,
         faces=np.asarray(mesh.faces),
         cameras=instance.cameras(views),
     )
+
+
+def _track(members: list[_Prepared], device: str) -> None:
+    """Farthest point sampling of a group in shared launches; records tracked + bound particles."""
+    picks = farthest_point_sampling_batch(
+        [p.scene.positions for p in members], TRACKED_PARTICLES, [p.fps_start for p in members], device
+    )
+    for p, fps in zip(members, picks):
+        record = np.union1d(fps, p.binding.indices.ravel())
+        p.scene.record = record
+        p.tracked = np.searchsorted(record, fps)
+        p.binding = p.binding.reindexed(record)
 
 
 def _render(prepared: list[_Prepared], vertices: list[np.ndarray], full: bool, device: str):
@@ -152,6 +161,7 @@ def simulate_batch(
     episodes: list[Episode | None] = [None] * len(instances)
     for group in groups:
         members = [prepared[i] for i in group]
+        _track(members, device)
         results = mpm.simulate([p.scene for p in members], device=device, frame_count=frame_count)
         vertices = [advect_vertices(p.binding, r.positions, r.deformation) for p, r in zip(members, results)]
         rendered = _render(members, vertices, full_masks, device)
