@@ -37,6 +37,8 @@ REQUIRED_METADATA = (
     "ad.kind",
 )
 KINDS = ("clip", "streaming")
+# The bundled default model, installed with the package (package data, found next to this module).
+BUNDLED_MODEL = Path(__file__).resolve().parent / "models" / "default.onnx"
 
 
 class ModelError(ValueError):

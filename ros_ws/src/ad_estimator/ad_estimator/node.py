@@ -1,5 +1,404 @@
-"""Placeholder so the workspace builds; its owner replaces this module."""
+"""`ros2 run ad_estimator node`: online material estimation from one mask stream.
+
+Thin ROS shell around ad_estimator.model (onnxruntime), .window (slots, episodes, output policy)
+and .images (Image -> mask). Threads: the subscription callback only checks header fields and
+puts the message in a bounded queue (full queue: the frame is dropped and counted); one worker
+thread converts, encodes, runs the model and publishes. Services run on the executor thread with
+their own window, sharing the (thread-safe) onnxruntime sessions.
+
+Topics: subscribes /ad_sim/view_0/mask (remap `mask:=...` or the full name), publishes
+/ad_estimator/estimate (ad_msgs/MaterialEstimate, reliable) and /diagnostics at 1 Hz.
+Services: ~/reset (std_srvs/Trigger), ~/estimate (ad_msgs/srv/EstimateMaterial).
+"""
+from __future__ import annotations
+
+import argparse
+import queue
+import sys
+import threading
+import time
+from collections import deque
+
+import numpy as np
+import rclpy
+from ad_msgs.msg import MaterialEstimate
+from ad_msgs.srv import EstimateMaterial
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.node import Node
+from rclpy.utilities import remove_ros_args
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import Image
+from std_srvs.srv import Trigger
+
+from ad_estimator.images import DEFAULT_THRESHOLD, ImageRejected, check_header, image_to_mask
+from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
+from ad_estimator.window import FrameWindow, WindowOutput, clip_stamps, ns_to_stamp, stamp_to_ns
+
+DEFAULT_INPUT_TOPIC = "/ad_sim/view_0/mask"
+LOG_THROTTLE_S = 5.0
+MAX_CLIP_FRAMES = 1000
+# name -> (default, description); every knob is a ROS parameter.
+PARAMETERS = {
+    "model_path": ("", "ONNX model (temporal head for streaming models); empty: the bundled default"),
+    "threads": (1, "onnxruntime intra-op threads (1 keeps latency low on a 2-core robot CPU)"),
+    "reliable": (False, "input QoS: reliable instead of sensor-data best effort"),
+    "input_depth": (25, "input QoS history depth (a burst of one episode fits)"),
+    "gap_threshold": (0.3, "seconds of stamp gap that start a new episode"),
+    "slot_tolerance": (1.0, "how far (in frame intervals) a frame may be from a slot time to fill it"),
+    "output_policy": ("episode", "'episode': one estimate at the full frame count; 'anytime': every_n"),
+    "every_n": (5, "anytime policy: an estimate every N more frames"),
+    "min_frames": (10, "anytime policy: frames before the first estimate"),
+    "max_image_pixels": (4096 * 4096, "larger images are rejected from their header alone"),
+    "mask_threshold": (DEFAULT_THRESHOLD, "pixel > threshold (of 255, scaled for 16 bit) is object"),
+    "queue_size": (64, "frames waiting for the worker; more are dropped and counted"),
+    "idle_flush": (0.3, "seconds without input after which pending slots settle (0: never)"),
+    "diagnostics_period": (1.0, "seconds between /diagnostics messages"),
+}
 
 
-def main() -> None:
-    raise SystemExit("not implemented yet")
+def to_time(ns: int) -> Time:
+    sec, nanosec = ns_to_stamp(ns)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def estimate_message(estimate: Estimate, window: WindowOutput, frame_id: str, model_id: str,
+                     inference_time: float) -> MaterialEstimate:
+    msg = MaterialEstimate()
+    msg.header.stamp = to_time(window.newest_stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.oldest_stamp = to_time(window.oldest_stamp_ns)
+    msg.frames_used = window.frames_used
+    msg.complete = window.complete
+    msg.material = estimate.material
+    msg.class_names = list(estimate.class_names)
+    msg.class_probabilities = [float(p) for p in estimate.probabilities]
+    msg.parameter_names = list(estimate.parameter_names)
+    msg.parameters = [float(v) for v in estimate.parameters]
+    msg.parameter_uncertainties = [float(v) for v in estimate.uncertainties]
+    msg.model_id = model_id
+    msg.inference_time = float(inference_time)
+    return msg
+
+
+class Throttle:
+    """At most one log line per key every `period` seconds, saying how many were suppressed."""
+
+    def __init__(self, log, period: float = LOG_THROTTLE_S):
+        self._log, self._period = log, period
+        self._last: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+
+    def __call__(self, key: str, message: str) -> None:
+        now = time.monotonic()
+        if now - self._last.get(key, -1e9) < self._period:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            return
+        extra = self._suppressed.pop(key, 0)
+        self._last[key] = now
+        self._log(message + (f" ({extra} more like this suppressed)" if extra else ""))
+
+
+class EstimatorNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("ad_estimator", **kwargs)
+        p = self._declare_parameters()
+        self.model = EstimatorModel.load(p["model_path"] or BUNDLED_MODEL, threads=p["threads"])
+        self.info = self.model.info
+        self.window = self._new_window(p["output_policy"], p["every_n"], p["min_frames"], p["gap_threshold"])
+        self.max_pixels = p["max_image_pixels"]
+        self.threshold = p["mask_threshold"]
+        self.idle_flush = p["idle_flush"]
+
+        self.queue: queue.Queue = queue.Queue(maxsize=p["queue_size"])
+        self.counters = dict(received=0, rejected=0, dropped=0, processed=0, published=0, errors=0)
+        self.latencies: deque[float] = deque(maxlen=1000)  # arrival -> publish, seconds
+        self.model_times: deque[float] = deque(maxlen=1000)
+        self._period_counts = dict(received=0, published=0, dropped=0, rejected=0)
+        self._lock = threading.Lock()  # counters and queue clearing
+        self._generation = 0  # bumped by ~/reset; the worker resets its window when it sees a new one
+        self._window_generation = 0
+        self._stop = threading.Event()
+        self._last_frame_time = time.monotonic()
+        self.warn = Throttle(self.get_logger().warning)
+
+        reliability = ReliabilityPolicy.RELIABLE if p["reliable"] else ReliabilityPolicy.BEST_EFFORT
+        input_qos = QoSProfile(depth=p["input_depth"], reliability=reliability,
+                               history=qos_profile_sensor_data.history, durability=qos_profile_sensor_data.durability)
+        self.input_topic = self._input_topic()
+        self.publisher = self.create_publisher(MaterialEstimate, "~/estimate", QoSProfile(depth=10))
+        self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.subscription = self.create_subscription(Image, self.input_topic, self.on_image, input_qos)
+        self.create_service(Trigger, "~/reset", self.on_reset)
+        self.create_service(EstimateMaterial, "~/estimate", self.on_estimate)
+        self.create_timer(p["diagnostics_period"], self.publish_diagnostics)
+        self._diag_time = time.monotonic()
+        self.worker = threading.Thread(target=self._work, name="ad_estimator_worker", daemon=True)
+        self.worker.start()
+        self.get_logger().info(
+            f"model {self.info.model_id} ({self.info.kind}, {self.info.path}); input {self.input_topic} "
+            f"({'reliable' if p['reliable'] else 'best effort'}); policy {p['output_policy']}; "
+            f"output {self.publisher.topic_name}")
+
+    # ------------------------------------------------------------------ set-up
+
+    def _declare_parameters(self) -> dict:
+        values = {}
+        for name, (default, description) in PARAMETERS.items():
+            values[name] = self.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+        if values["queue_size"] < 1 or values["threads"] < 1 or values["max_image_pixels"] < 1:
+            raise ValueError("queue_size, threads and max_image_pixels must be positive")
+        return values
+
+    def _new_window(self, policy: str, every_n: int, min_frames: int, gap_threshold: float) -> FrameWindow:
+        return FrameWindow(self.info.frame_interval, self.info.frame_count, gap_threshold=gap_threshold,
+                           slot_tolerance=self._param_value("slot_tolerance"), policy=policy, every_n=every_n,
+                           min_frames=min(min_frames, self.info.frame_count))
+
+    def _param_value(self, name):
+        return self.get_parameter(name).value
+
+    def _input_topic(self) -> str:
+        """`mask` remapped if the user remapped it, else the simulator's first camera."""
+        remapped = self.resolve_topic_name("mask")
+        return DEFAULT_INPUT_TOPIC if remapped == self.resolve_topic_name("mask", only_expand=True) else remapped
+
+    # ------------------------------------------------------------------ input
+
+    def _count(self, name: str) -> None:
+        with self._lock:
+            self.counters[name] += 1
+            if name in self._period_counts:
+                self._period_counts[name] += 1
+
+    def on_image(self, msg: Image) -> None:
+        """Subscription callback: header checks only, then the bounded queue."""
+        arrival = time.perf_counter()
+        self._count("received")
+        try:
+            check_header(msg.height, msg.width, msg.encoding, msg.step, self.max_pixels)
+        except ImageRejected as exc:
+            self._reject(exc)
+            return
+        try:
+            self.queue.put_nowait((arrival, self._generation, msg))
+        except queue.Full:
+            self._count("dropped")
+            self.warn("dropped", f"inference queue full ({self.queue.maxsize}): frame dropped")
+
+    def _reject(self, exc: ImageRejected) -> None:
+        self._count("rejected")
+        self.warn(f"reject:{exc.kind}", f"frame rejected: {exc}")
+
+    def handle_frame(self, msg: Image, arrival: float) -> list[MaterialEstimate]:
+        """Convert, place on the window, estimate and publish what is due (the worker's job)."""
+        try:
+            mask = image_to_mask(msg, self.max_pixels, self.threshold)
+        except ImageRejected as exc:
+            self._reject(exc)
+            return []
+        stamp = stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
+        encode_time = [0.0]
+
+        def encode():
+            start = time.perf_counter()
+            feature = self.model.encode(mask)
+            encode_time[0] = time.perf_counter() - start
+            return feature
+
+        outputs = self.window.add(stamp, mask.shape, encode)
+        self._count("processed")
+        return [self._publish(out, msg.header.frame_id, arrival, encode_time[0]) for out in outputs]
+
+    def _publish(self, out: WindowOutput, frame_id: str, arrival: float | None, encode_time: float) -> MaterialEstimate:
+        estimate = self.model.predict(out.features, out.valid)
+        model_time = estimate.inference_time + encode_time
+        msg = estimate_message(estimate, out, frame_id, self.info.model_id, model_time)
+        self.publisher.publish(msg)
+        self._count("published")
+        with self._lock:
+            self.model_times.append(model_time)
+            if arrival is not None:
+                self.latencies.append(time.perf_counter() - arrival)
+        return msg
+
+    def _work(self) -> None:
+        frame_id = ""
+        while not self._stop.is_set():
+            try:
+                arrival, generation, msg = self.queue.get(timeout=0.05)
+            except queue.Empty:
+                self._sync_reset(self._generation)
+                idle = time.monotonic() - self._last_frame_time
+                if self.idle_flush > 0 and idle > self.idle_flush and self.window.active:
+                    for out in self.window.flush():
+                        self._guarded(self._publish, out, frame_id, None, 0.0)
+                continue
+            self._sync_reset(generation)
+            self._last_frame_time = time.monotonic()
+            frame_id = msg.header.frame_id
+            self._guarded(self.handle_frame, msg, arrival)
+
+    def _sync_reset(self, generation: int) -> None:
+        if generation != self._window_generation:
+            self._window_generation = generation
+            self.window.reset()
+
+    def _guarded(self, function, *args):
+        """Nothing a frame carries may kill the worker: log and count instead."""
+        try:
+            return function(*args)
+        except Exception as exc:  # noqa: BLE001 - the worker must survive any bad frame
+            self._count("errors")
+            self.warn(f"error:{type(exc).__name__}", f"frame processing failed: {type(exc).__name__}: {exc}")
+            return None
+
+    # ------------------------------------------------------------------ services
+
+    def on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        with self.queue.mutex:  # frames that arrived before the reset belong to the old window
+            self.queue.queue.clear()
+            self._generation += 1
+        response.success = True
+        response.message = "window reset: the next frame starts a new episode"
+        return response
+
+    def on_estimate(self, request: EstimateMaterial.Request,
+                    response: EstimateMaterial.Response) -> EstimateMaterial.Response:
+        try:
+            response.estimate = self.estimate_clip(list(request.frames))
+            response.success = True
+        except (ValueError, ImageRejected) as exc:
+            response.success = False
+            response.message = str(exc)
+        return response
+
+    def estimate_clip(self, frames: list[Image]) -> MaterialEstimate:
+        """One estimate for a clip (oldest first), through the same slots as the stream."""
+        if not frames:
+            raise ValueError("empty clip: send at least one frame")
+        if len(frames) > MAX_CLIP_FRAMES:
+            raise ValueError(f"clip of {len(frames)} frames exceeds {MAX_CLIP_FRAMES}")
+        for i, frame in enumerate(frames):  # headers first: nothing is converted if any frame is bad
+            try:
+                check_header(frame.height, frame.width, frame.encoding, frame.step, self.max_pixels)
+            except ImageRejected as exc:
+                raise ValueError(f"frame {i}: {exc}") from exc
+        if len({(f.height, f.width) for f in frames}) > 1:
+            raise ValueError("clip frames must all have the same size")
+        stamps = clip_stamps([stamp_to_ns(f.header.stamp.sec, f.header.stamp.nanosec) for f in frames],
+                             self.info.frame_interval)
+        # One clip is one episode: no gap restarts; one estimate from every slot the clip reaches.
+        span = (stamps[-1] - stamps[0]) / 1e9 + 1.0
+        window = FrameWindow(self.info.frame_interval, self.info.frame_count, gap_threshold=span,
+                             slot_tolerance=self._param_value("slot_tolerance"), policy="anytime",
+                             every_n=self.info.frame_count, min_frames=1)
+        start = time.perf_counter()
+        outputs = []
+        for i, (frame, stamp) in enumerate(zip(frames, stamps)):
+            try:
+                mask = image_to_mask(frame, self.max_pixels, self.threshold)
+            except ImageRejected as exc:
+                raise ValueError(f"frame {i}: {exc}") from exc
+            outputs += window.add(stamp, mask.shape, lambda mask=mask: self.model.encode(mask))
+        outputs += window.flush()
+        out = outputs[-1]
+        estimate = self.model.predict(out.features, out.valid)
+        return estimate_message(estimate, out, frames[-1].header.frame_id, self.info.model_id,
+                                time.perf_counter() - start)
+
+    # ------------------------------------------------------------------ diagnostics
+
+    def statistics(self) -> dict:
+        with self._lock:
+            latencies = np.array(self.latencies)
+            model_times = np.array(self.model_times)
+            counters = dict(self.counters)
+        pct = (lambda a, q: float(np.percentile(a, q)) * 1e3 if len(a) else float("nan"))
+        return dict(counters, queue_depth=self.queue.qsize(), latency_p50_ms=pct(latencies, 50),
+                    latency_p95_ms=pct(latencies, 95), latency_p99_ms=pct(latencies, 99),
+                    model_time_p50_ms=pct(model_times, 50), window_restarts=dict(self.window.stats.restarts))
+
+    def publish_diagnostics(self) -> None:
+        now = time.monotonic()
+        period = max(now - self._diag_time, 1e-6)
+        self._diag_time = now
+        with self._lock:
+            recent = dict(self._period_counts)
+            self._period_counts = dict.fromkeys(self._period_counts, 0)
+        stats = self.statistics()
+        status = DiagnosticStatus()
+        status.name = f"{self.get_fully_qualified_name()}: material estimator"
+        status.hardware_id = self.info.model_id
+        problems = [f"{recent[k]} frames {k}" for k in ("dropped", "rejected") if recent[k]]
+        status.level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
+        status.message = "; ".join(problems) or "ok"
+        values = {
+            "model_id": self.info.model_id, "model_path": str(self.info.path), "input_topic": self.input_topic,
+            "input_rate_hz": f"{recent['received'] / period:.2f}",
+            "estimate_rate_hz": f"{recent['published'] / period:.2f}",
+            "latency_p50_ms": f"{stats['latency_p50_ms']:.3f}", "latency_p95_ms": f"{stats['latency_p95_ms']:.3f}",
+            "model_time_p50_ms": f"{stats['model_time_p50_ms']:.3f}",
+            "frames_received": str(stats["received"]), "frames_rejected": str(stats["rejected"]),
+            "frames_dropped": str(stats["dropped"]), "estimates_published": str(stats["published"]),
+            "processing_errors": str(stats["errors"]), "queue_depth": str(stats["queue_depth"]),
+            "window_restarts": str(sum(v for k, v in stats["window_restarts"].items() if k != "first")),
+        }
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self.diagnostics.publish(array)
+
+    def destroy_node(self) -> None:
+        self._stop.set()
+        if self.worker.is_alive():
+            self.worker.join(timeout=2.0)
+        super().destroy_node()
+
+
+def parse_cli(argv: list[str]) -> None:
+    """--help for a node whose knobs are ROS parameters (pass them after --ros-args -p name:=value)."""
+    lines = [f"  {name:20s} {default!r:>12}  {text}" for name, (default, text) in PARAMETERS.items()]
+    parser = argparse.ArgumentParser(
+        prog="ros2 run ad_estimator node", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Online material estimation from one mask stream with an ONNX student "
+                    "(publishes ad_msgs/MaterialEstimate on /ad_estimator/estimate).",
+        epilog="ROS parameters (--ros-args -p name:=value):\n" + "\n".join(lines)
+        + "\n\nRemap the input with --ros-args -r mask:=/camera/mask. Exit status 1 if the model cannot be loaded.")
+    parser.parse_args(remove_ros_args(argv)[1:])
+
+
+def main(args=None) -> int:
+    parse_cli(sys.argv if args is None else args)
+    rclpy.init(args=args)
+    node = None
+    try:
+        executor = SingleThreadedExecutor()
+        node = EstimatorNode()
+        executor.add_node(node)
+        executor.spin()
+    except (ModelError, ValueError, ParameterException) as exc:
+        print(f"ad_estimator: {exc}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass  # SIGINT / SIGTERM: a clean exit
+    except RCLError:
+        if rclpy.ok():
+            raise
+        # a signal shut the context down while rclpy was still setting something up: also clean
+    finally:
+        if node is not None:
+            # print, not the ROS logger: after a signal the context (and /rosout) is already gone
+            print(f"ad_estimator: shutting down: {node.statistics()}", file=sys.stderr, flush=True)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,66 @@
+"""Helpers for the estimator's ROS tests: an isolated rclpy context, mask images, spinning."""
+from __future__ import annotations
+
+import os
+import random
+import threading
+import time
+from contextlib import contextmanager
+
+import numpy as np
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from sensor_msgs.msg import Image
+
+from ad_estimator.window import ns_to_stamp
+
+
+@contextmanager
+def ros_context():
+    """rclpy context on a random domain (parallel test runs on this machine do not see each other)
+    and an executor spinning in a background thread, as in a running system."""
+    context = Context()
+    domain = random.Random(os.getpid() ^ time.time_ns()).randrange(1, 200)
+    rclpy.init(context=context, domain_id=domain)
+    executor = MultiThreadedExecutor(num_threads=3, context=context)
+    spinner = threading.Thread(target=_spin, args=(executor, context), daemon=True)
+    spinner.start()
+    try:
+        yield context, executor
+    finally:
+        rclpy.try_shutdown(context=context)
+        spinner.join(timeout=5.0)
+        executor.shutdown(timeout_sec=2.0)
+
+
+def _spin(executor, context) -> None:
+    while context.ok():
+        try:
+            executor.spin_once(timeout_sec=0.05)
+        except Exception:  # noqa: BLE001 - shutdown races surface as assorted rclpy errors
+            if context.ok():
+                raise
+            return
+
+
+def image_msg(mask: np.ndarray, stamp_ns: int, frame_id: str = "ad_sim/view_0", encoding: str = "mono8") -> Image:
+    msg = Image()
+    sec, nanosec = ns_to_stamp(stamp_ns)
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = mask.shape[:2]
+    msg.encoding = encoding
+    msg.step = mask.strides[0]
+    msg.data = np.ascontiguousarray(mask).tobytes()
+    return msg
+
+
+def wait_for(condition, timeout: float = 10.0) -> bool:
+    """Poll ``condition`` while the background executor works."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.01)
+    return condition()

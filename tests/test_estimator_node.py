@@ -1,0 +1,304 @@
+"""The estimator node over real DDS (rclpy, in-process executor) with real onnxruntime models."""
+import os
+import signal
+import subprocess
+import sys
+import time
+import types
+
+import numpy as np
+import pytest
+from ad_msgs.msg import MaterialEstimate
+from ad_msgs.srv import EstimateMaterial
+from diagnostic_msgs.msg import DiagnosticArray
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image
+from std_srvs.srv import Trigger
+
+from ad_estimator.model import EstimatorModel
+from ad_estimator.node import EstimatorNode
+from ad_estimator.window import FrameWindow
+from estimator_models import build_clip_model, build_streaming_model, falling_masks
+from estimator_ros import image_msg, ros_context, wait_for
+
+DT = 25_000_000
+TOPIC = "/estimator_test/mask"
+
+
+@pytest.fixture(scope="module")
+def model_paths(tmp_path_factory):
+    d = tmp_path_factory.mktemp("node_models")
+    return {"streaming": build_streaming_model(d), "clip": build_clip_model(d / "clip.onnx")}
+
+
+@pytest.fixture
+def ros():
+    with ros_context() as (context, executor):
+        yield context, executor
+
+
+def start(ros, model_path, **params):
+    context, executor = ros
+    overrides = [Parameter("model_path", value=str(model_path)), Parameter("reliable", value=True),
+                 Parameter("input_depth", value=100)]  # tests publish bursts faster than real time
+    overrides += [Parameter(k, value=v) for k, v in params.items()]
+    node = EstimatorNode(context=context, parameter_overrides=overrides,
+                         cli_args=["--ros-args", "-r", f"mask:={TOPIC}"])
+    client = Node("estimator_test_client", context=context)
+    estimates = []
+    client.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append, 10)
+    publisher = client.create_publisher(Image, TOPIC, QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+    executor.add_node(node)
+    executor.add_node(client)
+    assert wait_for(lambda: publisher.get_subscription_count() > 0 and client.count_publishers(
+        "/ad_estimator/estimate") > 0), "estimator did not come up"
+    return types.SimpleNamespace(node=node, client=client, estimates=estimates, publisher=publisher,
+                                 executor=executor)
+
+
+def publish_episode(t, masks, t0, step=DT):
+    for k, mask in enumerate(masks):
+        t.publisher.publish(image_msg(mask, t0 + k * step))
+
+
+def offline(model_path, masks, stamps, policy="episode", **kw):
+    """The expected estimates: model + window run directly."""
+    model = EstimatorModel.load(model_path)
+    window = FrameWindow(0.025, 25, policy=policy, **kw)
+    outputs = []
+    for mask, stamp in zip(masks, stamps):
+        outputs += window.add(stamp, mask.shape, lambda mask=mask: model.encode(mask))
+    return [(out, model.predict(out.features, out.valid)) for out in outputs]
+
+
+def stamp_ns(stamp):
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+@pytest.mark.parametrize("kind", ["streaming", "clip"])
+def test_one_estimate_per_episode_matches_offline(ros, model_paths, kind):
+    t = start(ros, model_paths[kind])
+    episodes = [falling_masks(seed=1), falling_masks(seed=2)]
+    starts = [1_000_000_000, 2_500_000_000]
+    for masks, t0 in zip(episodes, starts):
+        publish_episode(t, masks, t0)
+    assert wait_for(lambda: len(t.estimates) >= 2)
+    time.sleep(0.3)
+    assert len(t.estimates) == 2
+    for msg, masks, t0 in zip(t.estimates, episodes, starts):
+        ((out, expected),) = offline(model_paths[kind], masks, [t0 + k * DT for k in range(25)])
+        assert msg.complete and msg.frames_used == 25
+        assert stamp_ns(msg.header.stamp) == t0 + 24 * DT and stamp_ns(msg.oldest_stamp) == t0
+        assert msg.header.frame_id == "ad_sim/view_0"
+        assert msg.model_id == f"test-{kind}" and msg.inference_time > 0
+        assert msg.material == expected.material and list(msg.class_names) == list(expected.class_names)
+        np.testing.assert_allclose(msg.class_probabilities, expected.probabilities, rtol=1e-6)
+        np.testing.assert_allclose(msg.parameters, expected.parameters, rtol=1e-6)
+        np.testing.assert_allclose(msg.parameter_uncertainties, expected.uncertainties, rtol=1e-6)
+    stats = t.node.statistics()
+    assert stats["received"] == 50 and stats["published"] == 2 and stats["dropped"] == 0
+    assert stats["latency_p50_ms"] > 0
+
+
+def test_anytime_policy_reports_frames_used_and_uncertainty(ros, model_paths):
+    t = start(ros, model_paths["streaming"], output_policy="anytime", min_frames=10, every_n=5)
+    publish_episode(t, falling_masks(seed=3), 0)
+    assert wait_for(lambda: len(t.estimates) >= 4)
+    assert [m.frames_used for m in t.estimates] == [10, 15, 20, 25]
+    assert [m.complete for m in t.estimates] == [False, False, False, True]
+    for m in t.estimates:
+        used = ~np.isnan(m.parameters)
+        assert np.all(np.isfinite(np.asarray(m.parameter_uncertainties)[used]))
+
+
+def test_thirty_fps_camera_gets_the_models_spacing(ros, model_paths):
+    t = start(ros, model_paths["streaming"])
+    masks = falling_masks(40, seed=4)
+    stamps = [round(k * 1e9 / 30) for k in range(19)]
+    for mask, stamp in zip(masks, stamps):
+        t.publisher.publish(image_msg(mask, stamp))
+    assert wait_for(lambda: len(t.estimates) >= 1)
+    ((out, expected),) = offline(model_paths["streaming"], masks, stamps)
+    assert t.estimates[0].frames_used == 25 and out.frames_used == 25
+    np.testing.assert_allclose(t.estimates[0].class_probabilities, expected.probabilities, rtol=1e-6)
+
+
+def test_reset_service_restarts_the_window(ros, model_paths):
+    t = start(ros, model_paths["streaming"])
+    masks = falling_masks(seed=5)
+    publish_episode(t, masks[:10], 0)
+    assert wait_for(lambda: t.node.statistics()["processed"] == 10)
+    reset = t.client.create_client(Trigger, "/ad_estimator/reset")
+    assert reset.wait_for_service(timeout_sec=5)
+    future = reset.call_async(Trigger.Request())
+    assert wait_for(future.done) and future.result().success
+    publish_episode(t, masks, 10 * DT)  # stamps continue without a gap: only the reset restarts
+    assert wait_for(lambda: len(t.estimates) >= 1)
+    assert stamp_ns(t.estimates[0].oldest_stamp) == 10 * DT and t.estimates[0].frames_used == 25
+
+
+@pytest.mark.parametrize("cause", ["backwards", "size"])
+def test_window_restarts_on_backwards_stamps_and_size_change(ros, model_paths, cause):
+    t = start(ros, model_paths["streaming"])
+    publish_episode(t, falling_masks(seed=6)[:12], 10**9)
+    masks = falling_masks(size=96 if cause == "size" else 128, seed=7)
+    t0 = 10**9 + 12 * DT if cause == "size" else 10**9 - 5 * DT
+    publish_episode(t, masks, t0)
+    assert wait_for(lambda: len(t.estimates) >= 1)
+    assert stamp_ns(t.estimates[0].oldest_stamp) == t0 and t.estimates[0].frames_used == 25
+    assert t.node.window.stats.restarts[cause] == 1
+
+
+def test_estimate_service_answers_a_clip(ros, model_paths):
+    t = start(ros, model_paths["streaming"])
+    client = t.client.create_client(EstimateMaterial, "/ad_estimator/estimate")
+    assert client.wait_for_service(timeout_sec=5)
+    masks = falling_masks(seed=8)
+    request = EstimateMaterial.Request(frames=[image_msg(m, 0) for m in masks])  # unstamped: model spacing
+    future = client.call_async(request)
+    assert wait_for(future.done)
+    response = future.result()
+    assert response.success, response.message
+    ((_, expected),) = offline(model_paths["streaming"], masks, [k * DT for k in range(25)])
+    assert response.estimate.complete and response.estimate.frames_used == 25
+    np.testing.assert_allclose(response.estimate.class_probabilities, expected.probabilities, rtol=1e-6)
+
+    bad = EstimateMaterial.Request(frames=[image_msg(masks[0].astype(np.float32), 0, encoding="32FC1")])
+    future = client.call_async(bad)
+    assert wait_for(future.done)
+    assert not future.result().success and "32FC1" in future.result().message
+    future = client.call_async(EstimateMaterial.Request())
+    assert wait_for(future.done)
+    assert not future.result().success and "empty" in future.result().message
+
+
+def test_diagnostics(ros, model_paths):
+    t = start(ros, model_paths["streaming"], diagnostics_period=0.2)
+    arrays = []
+    t.client.create_subscription(DiagnosticArray, "/diagnostics", arrays.append, 10)
+    publish_episode(t, falling_masks(seed=9), 0)
+    assert wait_for(lambda: any(
+        dict((kv.key, kv.value) for kv in a.status[0].values).get("estimates_published") == "1" for a in arrays))
+    values = {kv.key: kv.value for kv in arrays[-1].status[0].values}
+    assert values["model_id"] == "test-streaming" and values["frames_received"] == "25"
+    assert float(values["latency_p50_ms"]) > 0 and values["frames_dropped"] == "0"
+    for key in ("input_rate_hz", "estimate_rate_hz", "latency_p95_ms", "model_time_p50_ms"):
+        float(values[key])
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def raw_image(height, width, encoding, step, data, stamp_ns, bigendian=False):
+    msg = Image()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+    msg.height, msg.width, msg.encoding, msg.step, msg.is_bigendian = height, width, encoding, step, bigendian
+    msg.data = data
+    return msg
+
+
+@pytest.fixture(scope="module")
+def fuzz_node(model_paths):
+    with ros_context() as (context, _):
+        node = EstimatorNode(context=context, parameter_overrides=[
+            Parameter("model_path", value=str(model_paths["streaming"])),
+            Parameter("max_image_pixels", value=300 * 300), Parameter("output_policy", value="anytime"),
+            Parameter("min_frames", value=1), Parameter("every_n", value=1), Parameter("queue_size", value=8)])
+        yield node
+        node.destroy_node()
+
+
+ENCODINGS = st.sampled_from(["mono8", "8UC1", "mono16", "16UC1", "rgb8", "bgr8", "rgba8", "32FC1", "yuv422", ""])
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.integers(0, 400), st.integers(0, 400), ENCODINGS, st.integers(0, 1300), st.integers(0, 40_000),
+       st.integers(0, 2**33), st.booleans(), st.booleans())
+def test_fuzz_callback_never_crashes(fuzz_node, height, width, encoding, step, length, stamp, bigendian, direct):
+    data = np.random.default_rng(length).integers(0, 256, length, dtype=np.uint8).tobytes()
+    msg = raw_image(height, width, encoding, step, data, stamp, bigendian)
+    before = fuzz_node.statistics()
+    if direct:
+        fuzz_node.handle_frame(msg, time.perf_counter())  # the worker's path, synchronously
+    else:
+        fuzz_node.on_image(msg)  # the subscription callback (header checks, queue)
+    after = fuzz_node.statistics()
+    assert fuzz_node.worker.is_alive() and after["errors"] == 0
+    assert fuzz_node.queue.qsize() <= 8
+    if not direct:
+        assert after["received"] == before["received"] + 1
+        if height * width > 300 * 300:
+            assert after["rejected"] == before["rejected"] + 1  # refused from the header alone
+
+
+def test_valid_fuzzed_frames_produce_estimates(fuzz_node):
+    """Well-formed frames of random sizes and stamps, straight into the handler: estimates come out."""
+    rng = np.random.default_rng(0)
+    published = 0
+    stamp = 5 * 10**9
+    for _ in range(60):
+        h, w = rng.choice([64, 128, 200]), rng.choice([64, 128, 200])
+        mask = (rng.random((h, w)) > 0.5).astype(np.uint8) * 255
+        stamp += int(rng.choice([DT, -DT, 10**9, DT // 2]))
+        published += len(fuzz_node.handle_frame(image_msg(mask, max(stamp, 0)), time.perf_counter()))
+    assert published > 0 and fuzz_node.statistics()["errors"] == 0
+
+
+def test_flood_keeps_the_queue_bounded_and_counts_drops(ros, model_paths):
+    context, executor = ros
+    node = EstimatorNode(context=context, parameter_overrides=[
+        Parameter("model_path", value=str(model_paths["clip"])), Parameter("queue_size", value=4)])
+    try:
+        msg = image_msg(np.full((512, 512), 255, np.uint8), 0)
+        depth = 0
+        for i in range(2000):
+            msg.header.stamp.nanosec = i * 1000
+            node.on_image(msg)
+            depth = max(depth, node.queue.qsize())
+        stats = node.statistics()
+        assert depth <= 4 and stats["dropped"] > 1000
+        assert stats["received"] == 2000 and node.worker.is_alive()
+        assert wait_for(lambda: node.queue.qsize() == 0)
+    finally:
+        node.destroy_node()
+
+
+# --------------------------------------------------------------------------- process level
+
+
+def run_node(*ros_args, **kwargs):
+    return subprocess.Popen([sys.executable, "-m", "ad_estimator.node", "--ros-args", *ros_args],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kwargs)
+
+
+@pytest.mark.parametrize("content", [None, b"not an onnx file", b""])
+def test_missing_or_corrupt_model_fails_at_start_naming_the_file(tmp_path, content):
+    path = tmp_path / "broken_model.onnx"
+    if content is not None:
+        path.write_bytes(content)
+    proc = run_node("-p", f"model_path:={path}")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and str(path) in out and "Traceback" not in out
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_clean_shutdown_on_signals(model_paths, sig):
+    proc = run_node("-p", f"model_path:={model_paths['streaming']}", "-r", "mask:=/estimator_test/signal",
+                    env=dict(os.environ, ROS_DOMAIN_ID=str(200 + sig)))
+    lines = []
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        lines.append(line)
+        if "model test-streaming" in line or not line:
+            break
+    assert any("model test-streaming" in line for line in lines), "".join(lines)
+    time.sleep(0.5)  # let it reach spin (a signal during start-up exits cleanly too, with less to say)
+    proc.send_signal(sig)
+    out = "".join(lines) + proc.communicate(timeout=20)[0]
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out and "shutting down" in out
