@@ -1,5 +1,174 @@
-"""Placeholder so the workspace builds; its owner replaces this module."""
+"""`ros2 run ad_estimator evaluate --model M --bags DIR...`: a model over recorded bags, offline.
+
+Every episode's mask frames go through the node's own code: images.image_to_mask, then the
+window's slots (window.clip_output: the slots the live window holds when the episode's stream
+ends), then model.predict. So the per-episode predictions equal what the live node publishes for
+the same frames. Metrics (SPEC 8) come from ad_estimator.metrics; --frames K adds the temporal
+out-of-distribution rows (only the first K frames observed). Needs no ROS runtime.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ad_estimator import metrics
+from ad_estimator.images import DEFAULT_THRESHOLD, image_to_mask
+from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
+from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns
+from ad_sim.rosbag import BagError, BagReader, group_episodes
+
+INSTANCE_TOPIC = "/ad_sim/instance"
+MASK_TOPIC = "/ad_sim/view_0/mask"
+MAX_IMAGE_PIXELS = 4096 * 4096
 
 
-def main() -> None:
-    raise SystemExit("not implemented yet")
+@dataclass
+class EpisodePrediction:
+    """One episode's ground truth and the model's estimate from its first `frames` frames."""
+
+    episode_id: str
+    frames: int  # frames observed
+    true_material: str
+    true_parameters: dict[str, float]
+    material: str
+    probabilities: list[float]
+    parameters: list[float]  # for the predicted material, NaN where unused
+    raw_parameters: list[float]  # every parameter denormalised (metrics use these for any family)
+    uncertainties: list[float]
+    frames_used: int
+    oldest_stamp_ns: int
+    newest_stamp_ns: int
+
+
+def find_bags(paths: list[Path]) -> list[Path]:
+    """Bag folders (or .mcap files) given directly or found below the given folders."""
+    bags = []
+    for path in paths:
+        if not path.exists():
+            raise BagError(f"{path} does not exist")
+        if path.is_file() or (path / "metadata.yaml").is_file() or any(path.glob("*.mcap")):
+            bags.append(path)
+            continue
+        found = sorted({p.parent for p in path.rglob("*.mcap")})
+        if not found:
+            raise BagError(f"no bag (.mcap files) under {path}")
+        bags.extend(found)
+    return bags
+
+
+def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC):
+    """(instance, [(stamp_ns, Image)]) per episode of the bag, in order."""
+    reader = BagReader(bag, topics=[INSTANCE_TOPIC, mask_topic])
+    for episode in group_episodes(reader, INSTANCE_TOPIC):
+        frames = [(stamp_to_ns(m.header.stamp.sec, m.header.stamp.nanosec), m)
+                  for _, m in episode.messages.get(mask_topic, [])]
+        yield episode.instance, frames
+
+
+def predict_episode(model: EstimatorModel, instance, frames, observed: int,
+                    slot_tolerance: float = DEFAULT_SLOT_TOLERANCE,
+                    threshold: int = DEFAULT_THRESHOLD) -> EpisodePrediction | None:
+    frames = frames[:observed]
+    if not frames:
+        return None
+    masks = [image_to_mask(image, MAX_IMAGE_PIXELS, threshold) for _, image in frames]
+    out = clip_output([s for s, _ in frames], masks, model.encode, model.info.frame_interval,
+                      model.info.frame_count, slot_tolerance)
+    estimate = model.predict(out.features, out.valid)
+    return EpisodePrediction(
+        episode_id=instance.episode_id, frames=observed, true_material=instance.material,
+        true_parameters=dict(zip(instance.parameter_names, (float(v) for v in instance.parameters))),
+        material=estimate.material, probabilities=estimate.probabilities.tolist(),
+        parameters=estimate.parameters.tolist(), raw_parameters=estimate.raw_parameters.tolist(),
+        uncertainties=estimate.uncertainties.tolist(), frames_used=out.frames_used,
+        oldest_stamp_ns=out.oldest_stamp_ns, newest_stamp_ns=out.newest_stamp_ns)
+
+
+def to_metrics(predictions: list[EpisodePrediction], parameter_names: tuple[str, ...]) -> metrics.Predictions:
+    families = list(metrics.FAMILIES)
+    true_params = np.array([[p.true_parameters.get(n, np.nan) for n in metrics.PARAMETER_NAMES]
+                            for p in predictions])
+    # the model's parameter order may differ from the metrics' order: map by name
+    order = [parameter_names.index(n) for n in metrics.PARAMETER_NAMES]
+    return metrics.Predictions(
+        true_class=[families.index(p.true_material) for p in predictions],
+        true_params=true_params.reshape(len(predictions), len(metrics.PARAMETER_NAMES)),
+        probabilities=np.array([p.probabilities for p in predictions]).reshape(len(predictions), -1),
+        pred_params=np.array([[p.raw_parameters[i] for i in order] for p in predictions]).reshape(
+            len(predictions), len(metrics.PARAMETER_NAMES)),
+        episode_ids=[p.episode_id for p in predictions])
+
+
+def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], mask_topic: str = MASK_TOPIC,
+             progress: bool = True) -> dict[int, list[EpisodePrediction]]:
+    """Predictions per number of observed frames, every episode of every bag."""
+    if model.info.class_names != tuple(metrics.FAMILIES):
+        raise ModelError(f"{model.info.path}: classes {model.info.class_names} differ from {metrics.FAMILIES}")
+    results: dict[int, list[EpisodePrediction]] = {k: [] for k in frame_counts}
+    with tqdm(desc="episodes", unit="ep", disable=not progress, file=sys.stderr) as bar:
+        for bag in bags:
+            for instance, frames in episode_frames(bag, mask_topic):
+                for k in frame_counts:
+                    prediction = predict_episode(model, instance, frames, k)
+                    if prediction is not None:
+                        results[k].append(prediction)
+                bar.update()
+    return results
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="ros2 run ad_estimator evaluate",
+        description="Run an ONNX student over recorded bags offline (same preprocessing and frame slots as the "
+                    "node) and report the paper's metrics (SPEC 8).")
+    parser.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: the bundled one)")
+    parser.add_argument("--bags", type=Path, nargs="+", required=True,
+                        help="bag folders, .mcap files, or folders holding bags (searched recursively)")
+    parser.add_argument("--frames", type=int, nargs="*", default=None,
+                        help=f"also evaluate with only the first K frames observed (temporal OOD); "
+                             f"with no value: {' '.join(map(str, metrics.TEMPORAL_OOD_FRAMES))}")
+    parser.add_argument("--topic", default=MASK_TOPIC, help="mask topic to evaluate (one camera)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="report folder (default reports/evaluate/<model id>)")
+    parser.add_argument("--title", default=None, help="report title")
+    parser.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        model = EstimatorModel.load(args.model, threads=args.threads)
+        count = model.info.frame_count
+        extra = metrics.TEMPORAL_OOD_FRAMES if args.frames == [] else (args.frames or [])
+        if bad := [k for k in extra if not 1 <= k <= count]:
+            raise ValueError(f"--frames {bad}: each K must be in 1..{count}")
+        frame_counts = sorted({count, *extra}, reverse=True)
+        results = evaluate(model, find_bags(args.bags), frame_counts, args.topic, progress=not args.quiet)
+    except (ModelError, BagError, ValueError) as exc:
+        print(f"evaluate: {exc}", file=sys.stderr)
+        return 1
+    if not results[count]:
+        print(f"evaluate: no episode with frames on {args.topic} in {[str(b) for b in args.bags]}", file=sys.stderr)
+        return 1
+    out = args.out or Path("reports") / "evaluate" / model.model_id
+    title = args.title or f"{model.model_id} on {', '.join(str(b) for b in args.bags)}"
+    by_frames = {k: to_metrics(v, model.info.parameter_names) for k, v in results.items() if v}
+    report = metrics.write_report(by_frames, out, title)
+    (out / "predictions.json").write_text(json.dumps(
+        {"model_id": model.model_id, "model_path": str(args.model), "topic": args.topic,
+         "frames": {str(k): [vars(p) for p in v] for k, v in results.items()}}, indent=1))
+    print(metrics.format_table(report, title))
+    print(f"\nreport: {out / 'report.md'}  predictions: {out / 'predictions.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -37,7 +37,8 @@ from std_srvs.srv import Trigger
 
 from ad_estimator.images import DEFAULT_THRESHOLD, ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
-from ad_estimator.window import FrameWindow, WindowOutput, clip_stamps, ns_to_stamp, stamp_to_ns
+from ad_estimator.window import (DEFAULT_GAP_THRESHOLD, DEFAULT_SLOT_TOLERANCE, FrameWindow, WindowOutput, clip_output,
+                                 ns_to_stamp, stamp_to_ns)
 
 DEFAULT_INPUT_TOPIC = "/ad_sim/view_0/mask"
 LOG_THROTTLE_S = 5.0
@@ -48,8 +49,8 @@ PARAMETERS = {
     "threads": (1, "onnxruntime intra-op threads (1 keeps latency low on a 2-core robot CPU)"),
     "reliable": (False, "input QoS: reliable instead of sensor-data best effort"),
     "input_depth": (25, "input QoS history depth (a burst of one episode fits)"),
-    "gap_threshold": (0.3, "seconds of stamp gap that start a new episode"),
-    "slot_tolerance": (1.0, "how far (in frame intervals) a frame may be from a slot time to fill it"),
+    "gap_threshold": (DEFAULT_GAP_THRESHOLD, "seconds of stamp gap that start a new episode"),
+    "slot_tolerance": (DEFAULT_SLOT_TOLERANCE, "how far (in frame intervals) a frame may be from a slot time to fill it"),
     "output_policy": ("episode", "'episode': one estimate at the full frame count; 'anytime': every_n"),
     "every_n": (5, "anytime policy: an estimate every N more frames"),
     "min_frames": (10, "anytime policy: frames before the first estimate"),
@@ -288,25 +289,16 @@ class EstimatorNode(Node):
                 check_header(frame.height, frame.width, frame.encoding, frame.step, self.max_pixels)
             except ImageRejected as exc:
                 raise ValueError(f"frame {i}: {exc}") from exc
-        if len({(f.height, f.width) for f in frames}) > 1:
-            raise ValueError("clip frames must all have the same size")
-        stamps = clip_stamps([stamp_to_ns(f.header.stamp.sec, f.header.stamp.nanosec) for f in frames],
-                             self.info.frame_interval)
-        # One clip is one episode: no gap restarts; one estimate from every slot the clip reaches.
-        span = (stamps[-1] - stamps[0]) / 1e9 + 1.0
-        window = FrameWindow(self.info.frame_interval, self.info.frame_count, gap_threshold=span,
-                             slot_tolerance=self._param_value("slot_tolerance"), policy="anytime",
-                             every_n=self.info.frame_count, min_frames=1)
         start = time.perf_counter()
-        outputs = []
-        for i, (frame, stamp) in enumerate(zip(frames, stamps)):
+        masks = []
+        for i, frame in enumerate(frames):
             try:
-                mask = image_to_mask(frame, self.max_pixels, self.threshold)
+                masks.append(image_to_mask(frame, self.max_pixels, self.threshold))
             except ImageRejected as exc:
                 raise ValueError(f"frame {i}: {exc}") from exc
-            outputs += window.add(stamp, mask.shape, lambda mask=mask: self.model.encode(mask))
-        outputs += window.flush()
-        out = outputs[-1]
+        stamps = [stamp_to_ns(f.header.stamp.sec, f.header.stamp.nanosec) for f in frames]
+        out = clip_output(stamps, masks, self.model.encode, self.info.frame_interval, self.info.frame_count,
+                          self._param_value("slot_tolerance"))
         estimate = self.model.predict(out.features, out.valid)
         return estimate_message(estimate, out, frames[-1].header.frame_id, self.info.model_id,
                                 time.perf_counter() - start)

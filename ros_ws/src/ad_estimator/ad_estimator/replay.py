@@ -1,5 +1,177 @@
-"""Placeholder so the workspace builds; its owner replaces this module."""
+"""`ros2 run ad_estimator replay BAG`: publish a recorded bag's topics with their recorded timing.
+
+For machines without rosbag2. Messages go out as the recorded CDR bytes (rclpy publishes
+serialized bytes as they are), so stamps and content are exactly the bag's. Each topic is
+published with the QoS it was recorded with (offered_qos_profiles in metadata.yaml; ground truth
+transient local), pacing follows the log times divided by --rate.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+from pathlib import Path
+
+import rclpy
+import yaml
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
+from tqdm import tqdm
+
+from ad_sim.rosbag import BagError, BagReader
+
+# Used when a bag has no metadata.yaml (a lone .mcap): what the simulator offers.
+DEFAULT_QOS = {"reliability": "reliable", "durability": "volatile", "history": "keep_last", "depth": 100}
+TRANSIENT_LOCAL_TOPICS = ("/ad_sim/instance",)
+# Older rosbag2 metadata stores the rmw enum values instead of names.
+_RELIABILITY = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT,
+                1: ReliabilityPolicy.RELIABLE, 2: ReliabilityPolicy.BEST_EFFORT}
+_DURABILITY = {"transient_local": DurabilityPolicy.TRANSIENT_LOCAL, "volatile": DurabilityPolicy.VOLATILE,
+               1: DurabilityPolicy.TRANSIENT_LOCAL, 2: DurabilityPolicy.VOLATILE}
+_HISTORY = {"keep_last": HistoryPolicy.KEEP_LAST, "keep_all": HistoryPolicy.KEEP_ALL,
+            1: HistoryPolicy.KEEP_LAST, 2: HistoryPolicy.KEEP_ALL}
 
 
-def main() -> None:
-    raise SystemExit("not implemented yet")
+def qos_from_recorded(profiles) -> QoSProfile:
+    """QoSProfile from rosbag2's offered_qos_profiles (a list, or the YAML string older bags hold)."""
+    if isinstance(profiles, str):
+        profiles = yaml.safe_load(profiles) or []
+    profile = dict(DEFAULT_QOS, **(profiles[0] if profiles else {}))
+    try:
+        return QoSProfile(reliability=_RELIABILITY[profile["reliability"]],
+                          durability=_DURABILITY[profile["durability"]],
+                          history=_HISTORY[profile["history"]], depth=max(1, int(profile["depth"])))
+    except KeyError as exc:
+        raise BagError(f"unknown QoS setting {exc} in offered_qos_profiles {profiles}") from exc
+
+
+def message_class(type_name: str):
+    """'pkg/msg/Type' -> the rclpy message class (the package must be installed and sourced)."""
+    package, _, name = type_name.partition("/msg/")
+    try:
+        return getattr(importlib.import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError) as exc:
+        raise BagError(f"message type {type_name} is not available here ({exc}); source the workspace "
+                       "that provides it (ros_ws/install/setup.bash)") from exc
+
+
+def recorded_topics(reader: BagReader) -> dict[str, tuple[str, QoSProfile]]:
+    """topic -> (type, QoS) from metadata.yaml, or from the files with simulator defaults."""
+    if reader.metadata is not None:
+        result = {}
+        for entry in reader.metadata.get("topics_with_message_count", []):
+            meta = entry["topic_metadata"]
+            result[meta["name"]] = (meta["type"], qos_from_recorded(meta.get("offered_qos_profiles") or []))
+        return result
+    return {topic: (type_name, qos_from_recorded([dict(
+        DEFAULT_QOS, durability="transient_local" if topic in TRANSIENT_LOCAL_TOPICS else "volatile")]))
+        for topic, type_name in reader.topics().items()}
+
+
+class Replayer:
+    """Publishers for a bag's topics and the paced publishing loop."""
+
+    def __init__(self, node: Node, bag: Path, topics: list[str] | None = None):
+        self.node = node
+        self.reader = BagReader(bag, raw=True, topics=topics)
+        available = recorded_topics(self.reader)
+        wanted = topics or sorted(available)
+        if missing := [t for t in wanted if t not in available]:
+            raise BagError(f"bag {bag} has no topic(s) {missing}; it has {sorted(available)}")
+        self.publishers = {t: node.create_publisher(message_class(available[t][0]), t, available[t][1])
+                           for t in wanted}
+        self.total = sum(e["message_count"] for e in (self.reader.metadata or {}).get("topics_with_message_count", [])
+                         if e["topic_metadata"]["name"] in self.publishers) or None
+        self.published = 0
+
+    def wait_for_subscribers(self, topics: list[str], timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        for topic in topics:
+            if topic not in self.publishers:
+                raise BagError(f"--wait-for {topic}: not a replayed topic")
+            while self.publishers[topic].get_subscription_count() == 0:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"no subscriber on {topic} after {timeout:.1f} s")
+                time.sleep(0.01)
+
+    def run(self, rate: float, progress: bool = True) -> int:
+        """Publish every message at first_wall + (log_time - first_log) / rate; returns the count."""
+        start_wall = start_log = None
+        bar = tqdm(total=self.total, unit="msg", desc="replay", disable=not progress, file=sys.stderr)
+        for topic, log_time, data in self.reader:
+            if start_log is None:
+                start_wall, start_log = time.monotonic(), log_time
+            delay = start_wall + (log_time - start_log) / 1e9 / rate - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            if not rclpy.ok(context=self.node.context):
+                break
+            self.publishers[topic].publish(bytes(data))
+            self.published += 1
+            bar.update()
+        bar.close()
+        return self.published
+
+    def wait_for_acknowledgments(self, timeout: float) -> bool:
+        """Reliable subscribers got everything (so exiting now loses nothing)."""
+        deadline = time.monotonic() + timeout
+        return all(p.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic())))
+                   for p in self.publishers.values())
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="ros2 run ad_estimator replay",
+        description="Publish a rosbag2 MCAP bag's topics with their recorded timing and QoS "
+                    "(for machines without rosbag2). ROS arguments (remapping) go after --ros-args.")
+    parser.add_argument("bag", type=Path, help="bag folder (metadata.yaml + .mcap files) or a single .mcap")
+    parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor (2 = twice as fast)")
+    parser.add_argument("--topics", nargs="+", help="replay only these topics (default: all)")
+    parser.add_argument("--wait-for", nargs="+", default=[], metavar="TOPIC",
+                        help="before starting, wait until each of these topics has a subscriber")
+    parser.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for --wait-for")
+    parser.add_argument("--delay", type=float, default=0.5,
+                        help="seconds between creating publishers and the first message (discovery)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    if not args.rate > 0:
+        parser.error("--rate must be > 0")
+    return args
+
+
+def main(args=None) -> int:
+    argv = sys.argv if args is None else args
+    options = parse_args(remove_ros_args(argv)[1:])
+    rclpy.init(args=argv)
+    node = None
+    try:
+        node = Node("ad_replay")
+        replayer = Replayer(node, options.bag, options.topics)
+        replayer.wait_for_subscribers(options.wait_for, options.wait_timeout)
+        time.sleep(options.delay)
+        count = replayer.run(options.rate, progress=not options.quiet)
+        acked = replayer.wait_for_acknowledgments(5.0)
+        print(f"replay: published {count} messages from {options.bag}"
+              + ("" if acked else " (some reliable subscribers did not acknowledge everything)"), file=sys.stderr)
+    except (BagError, TimeoutError) as exc:
+        print(f"replay: {exc}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except RCLError:
+        if rclpy.ok():
+            raise
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -32,6 +32,8 @@ from typing import Callable
 import numpy as np
 
 POLICIES = ("episode", "anytime")
+DEFAULT_GAP_THRESHOLD = 0.3  # s; episodes in a simulator stream are > 0.5 s apart, frames 0.025 s
+DEFAULT_SLOT_TOLERANCE = 1.0  # frame intervals
 # Stamps closer than this to a slot time count as at it (float stamps such as 1.5 + 3 * 0.025).
 SETTLE_EPSILON_NS = 1_000
 
@@ -75,8 +77,8 @@ class WindowStats:
 class FrameWindow:
     """Online episode window; see the module docstring for the rules."""
 
-    def __init__(self, frame_interval: float, frame_count: int, gap_threshold: float = 0.3,
-                 slot_tolerance: float = 1.0, policy: str = "episode", every_n: int = 1, min_frames: int = 10):
+    def __init__(self, frame_interval: float, frame_count: int, gap_threshold: float = DEFAULT_GAP_THRESHOLD,
+                 slot_tolerance: float = DEFAULT_SLOT_TOLERANCE, policy: str = "episode", every_n: int = 1, min_frames: int = 10):
         if policy not in POLICIES:
             raise ValueError(f"output policy must be one of {POLICIES}, got {policy!r}")
         if not frame_interval > 0 or frame_count < 1 or every_n < 1 or not 1 <= min_frames <= frame_count:
@@ -231,3 +233,21 @@ def clip_stamps(stamps_ns: list[int], frame_interval: float) -> list[int]:
         raise ValueError("clip stamps must be strictly increasing (or all equal for frames on the model's interval)")
     return list(stamps_ns)
 
+
+
+def clip_output(stamps_ns: list[int], masks: list[np.ndarray], encode: Callable[[np.ndarray], np.ndarray],
+                frame_interval: float, frame_count: int,
+                slot_tolerance: float = DEFAULT_SLOT_TOLERANCE) -> WindowOutput | None:
+    """The slots of a whole clip (oldest first), as one episode: what the stream would give at its
+    last frame, settled as at the end of a stream. Used by the EstimateMaterial service and evaluate."""
+    stamps_ns = clip_stamps(list(stamps_ns), frame_interval)
+    span = (stamps_ns[-1] - stamps_ns[0]) / 1e9 + 1.0  # one clip is one episode: no gap restarts
+    window = FrameWindow(frame_interval, frame_count, gap_threshold=span, slot_tolerance=slot_tolerance,
+                         policy="anytime", every_n=frame_count, min_frames=1)
+    outputs = []
+    for stamp, mask in zip(stamps_ns, masks):
+        if mask.shape != masks[0].shape:
+            raise ValueError("clip frames must all have the same size")
+        outputs += window.add(stamp, mask.shape, lambda mask=mask: encode(mask))
+    outputs += window.flush()
+    return outputs[-1] if outputs else None
