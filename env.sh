@@ -7,7 +7,7 @@ if [ ! -f "$_ad_root/ros_ws/install/setup.bash" ]; then
     unset _ad_root
     return 1 2>/dev/null || exit 1
 fi
-. "${VENV:-$_ad_root/.venv}/bin/activate"
+. "${VENV:-$(cat "$_ad_root/ros_ws/install/.ad-venv" 2>/dev/null || echo "$_ad_root/.venv")}/bin/activate"
 if [ -n "${ZSH_VERSION:-}" ]; then . "$_ad_root/ros_ws/install/setup.zsh"; else . "$_ad_root/ros_ws/install/setup.bash"; fi
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
 export AD_ROOT="$_ad_root"

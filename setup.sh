@@ -114,6 +114,7 @@ else
     grep -E '^(Finished|Summary)' "$BUILD_LOG" | sed 's/^/    /'
     echo "$FINGERPRINT" > "$BUILD_STAMP"
 fi
+echo "$VENV" > "$WS/install/.ad-venv"  # env.sh activates the venv the workspace was built with
 
 cat <<EOF
 

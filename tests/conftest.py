@@ -1,0 +1,81 @@
+"""Shared fixtures and markers.
+
+- `ros` marker: the test needs the built workspace (ad_msgs typesupport, ament index). Such tests
+  FAIL with instructions when it is missing; they never skip.
+- `rclpy_context`: an initialised rclpy Context on a ROS domain of its own, also exported as
+  ROS_DOMAIN_ID so that subprocesses started by the test (nodes via scripts/adrun) join it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import itertools
+import os
+from functools import lru_cache
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+WORKSPACE_INSTALL = REPO_ROOT / "ros_ws" / "install"
+BUILD_HINT = "run ./setup.sh and source env.sh first (scripts/test.sh does both)"
+
+# DDS discovery stays on this machine; before any rclpy import initialises a context.
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+# Domains 1..100 are valid for DDS on Linux; start from the run's ROS_DOMAIN_ID (scripts/test.sh
+# picks a random one) so that concurrent runs on one machine rarely collide, then give every
+# rclpy_context the next one so that a node left over from one test cannot talk to the next.
+_RUN_DOMAIN = int(os.environ.get("ROS_DOMAIN_ID", os.getpid() % 100 + 1))
+_domains = (((_RUN_DOMAIN - 1 + offset) % 100) + 1 for offset in itertools.count())
+
+
+@lru_cache(maxsize=None)
+def workspace_problem() -> str | None:
+    """Why the ROS workspace cannot be used from this process, or None when it can."""
+    if not (WORKSPACE_INSTALL / "setup.bash").is_file():
+        return f"ros_ws is not built ({WORKSPACE_INSTALL}/setup.bash missing): {BUILD_HINT}"
+    prefixes = os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)
+    if str(WORKSPACE_INSTALL / "ad_msgs") not in prefixes:
+        return f"the ros_ws environment is not sourced (AMENT_PREFIX_PATH lacks {WORKSPACE_INSTALL}/ad_msgs): {BUILD_HINT}"
+    for module in ("rclpy", "ad_msgs.msg", "ad_msgs.srv"):
+        try:
+            importlib.import_module(module)
+        except ImportError as error:
+            return f"cannot import {module} ({error}): {BUILD_HINT}"
+    return None
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    if item.get_closest_marker("ros") is not None:
+        problem = workspace_problem()
+        if problem is not None:
+            pytest.fail(problem, pytrace=False)
+
+
+@pytest.fixture
+def ros_domain_id(monkeypatch: pytest.MonkeyPatch) -> int:
+    """A ROS domain for this test alone, exported as ROS_DOMAIN_ID for the subprocesses it starts."""
+    domain = next(_domains)
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    return domain
+
+
+@pytest.fixture
+def rclpy_context(ros_domain_id: int):
+    """An initialised rclpy Context on this test's own domain; shut down afterwards.
+
+    Create nodes and executors with `context=rclpy_context`.
+    """
+    problem = workspace_problem()
+    if problem is not None:
+        pytest.fail(problem, pytrace=False)
+    import rclpy
+    from rclpy.context import Context
+
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain_id)
+    try:
+        yield context
+    finally:
+        context.try_shutdown()

@@ -1,0 +1,352 @@
+"""The workspace as ROS 2 sees it: the ament index lookup `ros2 run` does, every ad_msgs type through
+rclpy serialization, DDS between processes on the test's domain, package data at run time, and
+setup.sh's CMake repair and idempotency."""
+
+from __future__ import annotations
+
+import array
+import importlib.metadata
+import importlib.util
+import math
+import os
+import subprocess
+import sys
+import textwrap
+import time
+import xml.etree.ElementTree as ElementTree
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+INSTALL = REPO_ROOT / "ros_ws" / "install"
+SRC = REPO_ROOT / "ros_ws" / "src"
+ADRUN = REPO_ROOT / "scripts" / "adrun"
+
+# Executables and their console-script entry points (SPEC section 4).
+EXECUTABLES = {
+    "ad_sim": {
+        "node": "ad_sim.sim_node:main",
+        "record": "ad_sim.record_node:main",
+        "generate": "ad_sim.generate:main",
+    },
+    "ad_estimator": {
+        "node": "ad_estimator.node:main",
+        "replay": "ad_estimator.replay:main",
+        "evaluate": "ad_estimator.evaluate:main",
+    },
+}
+PACKAGES = ["ad_msgs", *EXECUTABLES]
+# Installed package data: package -> folder inside the python package.
+PACKAGE_DATA = {"ad_sim": "data", "ad_estimator": "models"}
+
+pytestmark = pytest.mark.ros
+
+
+def run(command: list[str], timeout: float = 120, **kwargs) -> subprocess.CompletedProcess:
+    return subprocess.run(command, capture_output=True, text=True, timeout=timeout, **kwargs)
+
+
+# --- ament index: what `ros2 run <pkg> <exe>` looks up ------------------------------------------
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_ament_index_finds_package(package):
+    from ament_index_python.packages import get_package_prefix, get_package_share_directory
+
+    assert Path(get_package_prefix(package)) == INSTALL / package
+    manifest = Path(get_package_share_directory(package)) / "package.xml"
+    assert ElementTree.parse(manifest).getroot().findtext("name") == package
+
+
+@pytest.mark.parametrize("package", list(EXECUTABLES))
+def test_ament_index_finds_every_executable(package):
+    # ros2run: prefix from the ament index, then the executables found under <prefix>/lib/<package>.
+    from ament_index_python.packages import get_package_prefix
+
+    libdir = Path(get_package_prefix(package)) / "lib" / package
+    found = {path.name for path in libdir.iterdir() if path.is_file() and os.access(path, os.X_OK)}
+    assert found == set(EXECUTABLES[package])
+
+
+@pytest.mark.parametrize("package", list(EXECUTABLES))
+def test_executables_point_at_their_modules(package):
+    entry_points = {ep.name: ep.value for ep in importlib.metadata.distribution(package).entry_points}
+    assert entry_points == EXECUTABLES[package]
+    for target in entry_points.values():
+        module = target.split(":")[0]
+        assert importlib.util.find_spec(module) is not None, f"{module} missing"
+
+
+def test_adrun_lists_and_rejects():
+    listing = run([str(ADRUN), "ad_sim"])
+    assert listing.returncode == 0, listing.stderr
+    assert listing.stdout.split("\n")[:-1] == [f"ad_sim {name}" for name in sorted(EXECUTABLES["ad_sim"])]
+
+    missing_exe = run([str(ADRUN), "ad_sim", "no_such_executable"])
+    assert missing_exe.returncode == 1 and "no executable 'no_such_executable'" in missing_exe.stderr
+
+    missing_package = run([str(ADRUN), "no_such_package", "node"])
+    assert missing_package.returncode == 1 and "package 'no_such_package' not found" in missing_package.stderr
+
+
+@pytest.mark.parametrize(
+    "package, executable", [(package, exe) for package, exes in EXECUTABLES.items() for exe in exes]
+)
+def test_adrun_runs_executable_help(package, executable):
+    # Every CLI answers --help; this also proves adrun finds and execs the installed script.
+    result = run([str(ADRUN), package, executable, "--help"], timeout=60)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "usage" in result.stdout.lower()
+
+
+# --- messages through rclpy serialization -------------------------------------------------------
+
+
+def same(a, b) -> bool:
+    """Field-by-field equality of ROS messages, NaN equal to NaN."""
+    if hasattr(type(a), "get_fields_and_field_types"):
+        return type(a) is type(b) and all(
+            same(getattr(a, field), getattr(b, field)) for field in a.get_fields_and_field_types()
+        )
+    if isinstance(a, (list, tuple, array.array, bytes)) or type(a).__name__ == "ndarray":
+        return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) and isinstance(b, float):
+        return a == b or (math.isnan(a) and math.isnan(b))
+    return a == b
+
+
+def assert_round_trip(message) -> None:
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    message_type = type(message)
+    default = message_type()
+    restored = deserialize_message(serialize_message(message), message_type)
+    for field in message_type.get_fields_and_field_types():
+        sent, got = getattr(message, field), getattr(restored, field)
+        assert not same(sent, getattr(default, field)), f"{message_type.__name__}.{field} left at its default"
+        assert same(sent, got), f"{message_type.__name__}.{field}: sent {sent!r}, got {got!r}"
+
+
+def stamp(sec: int, nanosec: int):
+    from builtin_interfaces.msg import Time
+
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def pose(x: float, y: float, z: float):
+    from geometry_msgs.msg import Point, Pose, Quaternion
+
+    return Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=0.5, y=-0.5, z=0.5, w=0.5))
+
+
+def material_estimate():
+    from ad_msgs.msg import MaterialEstimate
+    from std_msgs.msg import Header
+
+    return MaterialEstimate(
+        header=Header(stamp=stamp(12, 600_000_000), frame_id="ad_sim/view_0"),
+        oldest_stamp=stamp(12, 0),
+        frames_used=25,
+        complete=True,
+        material="plasticine",
+        class_names=["jelly", "plasticine", "sand"],
+        class_probabilities=[0.125, 0.75, 0.125],  # exact in float32
+        parameter_names=["youngs_modulus", "poissons_ratio", "yield_stress", "friction_angle"],
+        parameters=[2.5e5, 0.41, 3.2e3, math.nan],
+        parameter_uncertainties=[1.5e4, 0.02, 4.0e2, math.nan],
+        model_id="student-test-0001",
+        inference_time=0.0042,
+    )
+
+
+def sim_instance():
+    from ad_msgs.msg import SimInstance
+    from geometry_msgs.msg import Twist, Vector3
+    from std_msgs.msg import Header
+
+    return SimInstance(
+        header=Header(stamp=stamp(4, 500_000_000), frame_id="ad_sim/world"),
+        episode_id="unseen-sphere-jelly-0003",
+        episode_index=3,
+        split="unseen",
+        shape="sphere",
+        material="jelly",
+        parameter_names=["youngs_modulus", "poissons_ratio"],
+        parameters=[1.5e6, 0.2],
+        seed=2**63 + 12345,  # uses the full uint64 width
+        initial_pose=pose(0.5, 0.45, 0.6),
+        initial_velocity=Twist(linear=Vector3(x=0.1, y=0.0, z=-0.5), angular=Vector3(x=0.0, y=2.0, z=0.0)),
+        scale=0.35,
+        camera_poses=[pose(1.5, 0.5, 0.8), pose(-0.5, 0.5, 0.8)],
+        grid_resolution=32,
+        frame_interval=0.025,
+        frame_count=25,
+        substeps_per_frame=120,
+        gravity=9.8,
+        density=1000.0,
+        particle_count=21_734,
+        tracked_particle_count=1024,
+    )
+
+
+def mask_image(value: int, sec: int):
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Header
+
+    return Image(
+        header=Header(stamp=stamp(sec, 25_000_000), frame_id="camera"),
+        height=2,
+        width=3,
+        encoding="mono8",
+        is_bigendian=0,
+        step=3,
+        data=[0, value, 0, value, value, 0],
+    )
+
+
+def test_material_estimate_round_trips():
+    assert_round_trip(material_estimate())
+
+
+def test_sim_instance_round_trips():
+    assert_round_trip(sim_instance())
+
+
+def test_estimate_material_request_round_trips():
+    from ad_msgs.srv import EstimateMaterial
+
+    assert_round_trip(EstimateMaterial.Request(frames=[mask_image(255, 1), mask_image(128, 2)]))
+
+
+def test_estimate_material_response_round_trips():
+    from ad_msgs.srv import EstimateMaterial
+
+    assert_round_trip(EstimateMaterial.Response(success=True, message="ok", estimate=material_estimate()))
+
+
+# --- DDS on the fixture's domain ------------------------------------------------------------------
+
+PUBLISHER = textwrap.dedent(
+    """
+    import sys, time, rclpy
+    sys.path.insert(0, sys.argv[1])
+    from test_workspace import sim_instance
+    from ad_msgs.msg import SimInstance
+    rclpy.init()
+    node = rclpy.create_node("workspace_test_publisher")
+    publisher = node.create_publisher(SimInstance, "/workspace_test/instance", 10)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        publisher.publish(sim_instance())
+        time.sleep(0.1)
+    """
+)
+
+
+def test_rclpy_context_receives_from_another_process(rclpy_context, ros_domain_id):
+    import rclpy
+    from ad_msgs.msg import SimInstance
+    from rclpy.executors import SingleThreadedExecutor
+
+    assert rclpy_context.get_domain_id() == ros_domain_id == int(os.environ["ROS_DOMAIN_ID"])
+    node = rclpy.create_node("workspace_test_listener", context=rclpy_context)
+    received = []
+    node.create_subscription(SimInstance, "/workspace_test/instance", received.append, 10)
+    executor = SingleThreadedExecutor(context=rclpy_context)
+    executor.add_node(node)
+    publisher = subprocess.Popen([sys.executable, "-c", PUBLISHER, str(Path(__file__).parent)])
+    try:
+        deadline = time.monotonic() + 25
+        while not received and time.monotonic() < deadline and publisher.poll() is None:
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        publisher.terminate()
+        publisher.wait(timeout=10)
+        executor.shutdown()
+        node.destroy_node()
+    assert received, "no SimInstance arrived from the publisher process within 25 s"
+    assert same(received[0], sim_instance())
+
+
+# --- package data as found at run time ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("package", list(PACKAGE_DATA))
+def test_package_data_found_at_runtime(package):
+    # A fresh interpreter with only the sourced environment, as an executable would run.
+    folder = PACKAGE_DATA[package]
+    probe = textwrap.dedent(
+        f"""
+        import importlib.resources, os, {package}
+        root = importlib.resources.files("{package}") / "{folder}"
+        found = []
+        def walk(node, prefix):
+            for child in node.iterdir():
+                name = prefix + child.name
+                if child.is_dir():
+                    walk(child, name + "/")
+                elif "__pycache__" not in name:
+                    found.append(name)
+        if root.is_dir():
+            walk(root, "")
+        print(os.path.realpath({package}.__file__))
+        print(*sorted(found), sep="\\n")
+        """
+    )
+    result = run([sys.executable, "-c", probe], cwd="/")
+    assert result.returncode == 0, result.stderr
+    module_file, *found = result.stdout.strip().split("\n")
+    source = SRC / package / package
+    assert Path(module_file) == source / "__init__.py", "symlink install should run the source tree"
+    expected = sorted(
+        str(path.relative_to(source / folder))
+        for path in (source / folder).rglob("*")
+        if path.is_file() and "__pycache__" not in path.parts
+    )
+    assert [name for name in found if name] == expected
+
+
+# --- setup.sh -----------------------------------------------------------------------------------
+
+
+def load_repair_module():
+    spec = importlib.util.spec_from_file_location("repair_ros_cmake", REPO_ROOT / "scripts" / "repair_ros_cmake.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_repair_rewrites_build_machine_include_paths(tmp_path):
+    repair = load_repair_module()
+    export = tmp_path / "share" / "some_msgs" / "cmake" / "export_some_msgs__rosidl_generator_pyExport.cmake"
+    export.parent.mkdir(parents=True)
+    export.write_text(
+        f'INTERFACE_INCLUDE_DIRECTORIES "{repair.BUILD_MACHINE_PYTHON_INCLUDE};{repair.BUILD_MACHINE_NUMPY_INCLUDE}"\n'
+    )
+    assert repair.repair(tmp_path) == [export]
+    directories = export.read_text().split('"')[1].split(";")
+    assert len(directories) == 2 and all(Path(d).is_dir() for d in directories)
+    assert Path(directories[0], "Python.h").is_file()
+    assert Path(directories[1], "numpy", "arrayobject.h").is_file()
+    assert repair.repair(tmp_path) == []  # idempotent
+
+
+def test_venv_cmake_exports_are_repaired():
+    prefix = Path(sys.prefix)
+    stale = [
+        path
+        for path in prefix.glob("share/*/cmake/*.cmake")
+        if "/opt/python/cp311-cp311" in path.read_text()
+    ]
+    assert not stale, f"setup.sh left build-machine paths in {stale[:3]}"
+
+
+def test_setup_rerun_skips_everything():
+    started = time.monotonic()
+    result = run(["bash", str(REPO_ROOT / "setup.sh")], timeout=600)
+    elapsed = time.monotonic() - started
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "up to date: requirements.txt" in result.stdout
+    assert "up to date: ros_ws build" in result.stdout
+    assert elapsed < 30, f"a re-run took {elapsed:.1f} s"
