@@ -1,0 +1,248 @@
+"""The metrics of the paper's tables (SPEC section 8), shared by `python -m training evaluate`
+and `ros2 run ad_estimator evaluate`.
+
+numpy and matplotlib only: this module must never import torch.
+
+Inputs are a `Predictions` per number of observed frames (25 = the full clip, plus the
+temporal-OOD prefixes 24, 22, 18, 15). Parameters are SI (friction angle in radians);
+reports show the friction angle in degrees.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ad_sim.materials import FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS
+
+#: The temporal out-of-distribution rows: only the first K frames are observed.
+TEMPORAL_OOD_FRAMES = (24, 22, 18, 15)
+
+# How each parameter's error is reported (SPEC 8): log-MAE (natural log), MAE, MAE in degrees.
+_ERROR_KIND = {
+    "youngs_modulus": "log_mae",
+    "poissons_ratio": "mae",
+    "yield_stress": "log_mae",
+    "friction_angle": "mae_deg",
+}
+# Column labels of the paper's table.
+_SHORT = {"youngs_modulus": "E", "poissons_ratio": "nu", "yield_stress": "yield", "friction_angle": "phi"}
+
+
+def family_ranges() -> dict[str, dict[str, tuple[float, float, str]]]:
+    """Each family's sampled parameters and their own sampling ranges (fixed ones left out)."""
+    return {f: {n: FAMILY_RANGES[f][n] for n in SAMPLED_PARAMETERS[f]} for f in FAMILIES}
+
+
+@dataclass
+class Predictions:
+    """Model outputs over N clips, with their ground truth. Filled by every evaluator."""
+
+    true_class: np.ndarray  # (N,) int, index into FAMILIES
+    true_params: np.ndarray  # (N, 4) SI in PARAMETER_NAMES order; NaN where the family lacks one
+    probabilities: np.ndarray  # (N, 3) class probabilities
+    pred_params: np.ndarray  # (N, 4) SI, the parameters the model predicts (used for any family)
+    episode_ids: list[str] = field(default_factory=list)
+
+    def __post_init__(self):
+        self.true_class = np.asarray(self.true_class, dtype=np.int64)
+        self.true_params = np.asarray(self.true_params, dtype=np.float64)
+        self.probabilities = np.asarray(self.probabilities, dtype=np.float64)
+        self.pred_params = np.asarray(self.pred_params, dtype=np.float64)
+        n = len(self.true_class)
+        expected = {"true_params": (n, len(PARAMETER_NAMES)), "probabilities": (n, len(FAMILIES)),
+                    "pred_params": (n, len(PARAMETER_NAMES))}
+        for name, shape in expected.items():
+            if getattr(self, name).shape != shape:
+                raise ValueError(f"Predictions.{name} has shape {getattr(self, name).shape}, expected {shape}")
+
+    @property
+    def pred_class(self) -> np.ndarray:
+        return self.probabilities.argmax(axis=1)
+
+    def __len__(self) -> int:
+        return len(self.true_class)
+
+
+def _normalise(values: np.ndarray, lo: float, hi: float, scale: str) -> np.ndarray:
+    if scale == "log":
+        # A non-positive prediction is infinitely wrong in log space; clip to keep the mean finite.
+        return (np.log(np.clip(values, 1e-12, None)) - math.log(lo)) / (math.log(hi) - math.log(lo))
+    return (values - lo) / (hi - lo)
+
+
+def regl1(pred: Predictions) -> np.ndarray:
+    """Per clip: mean over the true family's sampled parameters of |pred_n - true_n|, each
+    normalised to [0, 1] over that family's own sampling range (log space for E and yield)."""
+    out = np.zeros(len(pred))
+    for c, (family, ranges) in enumerate(family_ranges().items()):
+        rows = pred.true_class == c
+        if not rows.any():
+            continue
+        errors = []
+        for name, (lo, hi, scale) in ranges.items():
+            j = PARAMETER_NAMES.index(name)
+            errors.append(np.abs(_normalise(pred.pred_params[rows, j], lo, hi, scale)
+                                 - _normalise(pred.true_params[rows, j], lo, hi, scale)))
+        out[rows] = np.mean(errors, axis=0)
+    return out
+
+
+def _parameter_error(name: str, pred: np.ndarray, true: np.ndarray) -> float:
+    if len(true) == 0:
+        return float("nan")
+    kind = _ERROR_KIND[name]
+    if kind == "log_mae":
+        return float(np.mean(np.abs(np.log(np.clip(pred, 1e-12, None)) - np.log(true))))
+    if kind == "mae_deg":
+        return float(np.degrees(np.mean(np.abs(pred - true))))
+    return float(np.mean(np.abs(pred - true)))
+
+
+def compute_metrics(pred: Predictions) -> dict:
+    """Per family: n, Acc, parameter errors over correctly classified clips (the paper's
+    convention) and over all clips of the family; per-family and overall RegL1."""
+    ranges = family_ranges()
+    per_clip_regl1 = regl1(pred)
+    pred_class = pred.pred_class
+    families = {}
+    for c, family in enumerate(FAMILIES):
+        rows = pred.true_class == c
+        correct = rows & (pred_class == c)
+        entry = {"n": int(rows.sum()), "acc": float(correct.sum() / rows.sum()) if rows.any() else float("nan"),
+                 "regl1": float(per_clip_regl1[rows].mean()) if rows.any() else float("nan"),
+                 "correct": {}, "all": {}}
+        for name in ranges[family]:
+            j = PARAMETER_NAMES.index(name)
+            entry["correct"][name] = _parameter_error(name, pred.pred_params[correct, j], pred.true_params[correct, j])
+            entry["all"][name] = _parameter_error(name, pred.pred_params[rows, j], pred.true_params[rows, j])
+        families[family] = entry
+    confusion = np.zeros((len(FAMILIES), len(FAMILIES)), dtype=np.int64)
+    np.add.at(confusion, (pred.true_class, pred_class), 1)
+    return {
+        "n": len(pred),
+        "accuracy": float((pred_class == pred.true_class).mean()) if len(pred) else float("nan"),
+        "regl1": float(per_clip_regl1.mean()) if len(pred) else float("nan"),
+        "families": families,
+        "confusion": confusion.tolist(),
+    }
+
+
+def evaluate_all(by_frames: dict[int, Predictions]) -> dict:
+    """Metrics for every number of observed frames; keys of the result are str(K)."""
+    return {str(k): compute_metrics(p) for k, p in sorted(by_frames.items(), reverse=True)}
+
+
+def _columns() -> list[tuple[str, str, str | None]]:
+    """(family, label, parameter or None for Acc) in the paper's column order."""
+    ranges = family_ranges()
+    cols = []
+    for family in FAMILIES:
+        cols.append((family, f"{family} Acc", None))
+        cols += [(family, f"{family} {_SHORT[n]}", n) for n in ranges[family]]
+    return cols
+
+
+def format_table(results: dict, title: str = "", which: str = "correct") -> str:
+    """The paper's table layout as Markdown: one row per number of observed frames (the
+    full clip first, then the temporal-OOD rows). `which` is "correct" (paper) or "all"."""
+    cols = _columns()
+    header = ["frames"] + [label for _, label, _ in cols] + ["RegL1"]
+    lines = []
+    if title:
+        lines.append(f"**{title}** (parameter errors over {'correctly classified' if which == 'correct' else 'all'} "
+                     "clips of each family; E, yield: log-MAE; nu: MAE; phi: MAE in degrees)")
+        lines.append("")
+    lines.append("| " + " | ".join(header) + " |")
+    lines.append("|" + "|".join("---" for _ in header) + "|")
+    for k, m in sorted(results.items(), key=lambda kv: -int(kv[0])):
+        row = [str(k)]
+        for family, _, name in cols:
+            fam = m["families"][family]
+            row.append(f"{fam['acc']:.3f}" if name is None else f"{fam[which][name]:.3f}")
+        row.append(f"{m['regl1']:.3f}")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def _plot_confusion(ax, confusion: np.ndarray) -> None:
+    ax.imshow(confusion, cmap="Blues")
+    ax.set_xticks(range(len(FAMILIES)), FAMILIES)
+    ax.set_yticks(range(len(FAMILIES)), FAMILIES)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("true")
+    for i in range(confusion.shape[0]):
+        for j in range(confusion.shape[1]):
+            ax.text(j, i, str(confusion[i, j]), ha="center", va="center",
+                    color="white" if confusion[i, j] > confusion.max() / 2 else "black")
+
+
+def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: str = "evaluation") -> dict:
+    """Writes metrics.json, report.md and the plots (confusion matrix, predicted vs true per
+    parameter, RegL1 against frames observed) into out_dir; returns the metrics."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    results = evaluate_all(by_frames)
+    full_k = max(by_frames)
+    full = by_frames[full_k]
+    (out / "metrics.json").write_text(json.dumps({"title": title, "frames": results}, indent=2))
+
+    fig, ax = plt.subplots(figsize=(4, 4))
+    _plot_confusion(ax, np.asarray(results[str(full_k)]["confusion"]))
+    ax.set_title(f"confusion ({full_k} frames)")
+    fig.tight_layout()
+    fig.savefig(out / "confusion.png", dpi=100)
+    plt.close(fig)
+
+    ranges = family_ranges()
+    fig, axes = plt.subplots(1, len(PARAMETER_NAMES), figsize=(4 * len(PARAMETER_NAMES), 4))
+    for j, name in enumerate(PARAMETER_NAMES):
+        ax = axes[j]
+        families = [f for f in FAMILIES if name in ranges[f]]
+        for family in families:
+            rows = full.true_class == FAMILIES.index(family)
+            t, p = full.true_params[rows, j], full.pred_params[rows, j]
+            if name == "friction_angle":
+                t, p = np.degrees(t), np.degrees(p)
+            ax.scatter(t, p, s=8, label=family)
+        lims = [min(ranges[f][name][0] for f in families), max(ranges[f][name][1] for f in families)]
+        if name == "friction_angle":
+            lims = list(np.degrees(lims))
+        ax.plot(lims, lims, "k--", lw=1)
+        if _ERROR_KIND[name] == "log_mae":
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+        ax.set_xlabel(f"true {_SHORT[name]}")
+        ax.set_ylabel(f"predicted {_SHORT[name]}")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "pred_vs_true.png", dpi=100)
+    plt.close(fig)
+
+    ks = sorted(by_frames)
+    fig, ax = plt.subplots(figsize=(5, 4))
+    ax.plot(ks, [results[str(k)]["regl1"] for k in ks], "o-", label="all")
+    for family in FAMILIES:
+        ax.plot(ks, [results[str(k)]["families"][family]["regl1"] for k in ks], ".--", label=family)
+    ax.set_xlabel("frames observed")
+    ax.set_ylabel("RegL1")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "regl1_vs_frames.png", dpi=100)
+    plt.close(fig)
+
+    md = [f"# {title}", "", format_table(results, "Paper convention"), "",
+          format_table(results, "Over all clips of each family", which="all"), "",
+          f"Clips: {len(full)}; frames per clip: {FRAME_COUNT}.", "",
+          "![confusion](confusion.png)", "", "![predicted vs true](pred_vs_true.png)", "",
+          "![RegL1 vs frames](regl1_vs_frames.png)", ""]
+    (out / "report.md").write_text("\n".join(md))
+    return results

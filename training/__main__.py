@@ -1,0 +1,49 @@
+"""python -m training {cache,teacher,student,export,evaluate,pipeline}"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+
+def _cache_parser(p: argparse.ArgumentParser) -> None:
+    p.description = "Decode bags into the array cache (done on demand by every stage; this just does it first)."
+    p.add_argument("--bags", required=True, help="folder of .mcap bags (searched recursively)")
+    p.add_argument("--cache", default=".cache/training", help="array cache folder (keyed by bag content)")
+    p.add_argument("--input-size", type=int, nargs=2, metavar=("H", "W"), action="append", default=[],
+                   help="also cache the videos resized for a student of this input size (repeatable)")
+
+
+def _cache_run(args) -> None:
+    from training import data
+
+    ds = data.load_dataset(args.bags, args.cache)
+    for size in args.input_size:
+        data.resized_videos(ds, tuple(size))
+    counts = {f: int((ds.labels == i).sum()) for i, f in enumerate(("jelly", "plasticine", "sand"))}
+    print(f"{len(ds)} instances {counts}, {ds.num_videos} videos, {len(ds.shards)} bags cached in {args.cache}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    from training import evaluate, export, pipeline, train_student, train_teacher
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    parser = argparse.ArgumentParser(prog="python -m training", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    commands = {
+        "cache": (_cache_parser, _cache_run, "decode bags into the array cache"),
+        "teacher": (train_teacher.build_parser, train_teacher.run, "Stage I: train the trajectory teacher"),
+        "student": (train_student.build_parser, train_student.run, "Stage II: train a video student"),
+        "export": (export.build_parser, export.run, "export a student to ONNX with metadata"),
+        "evaluate": (evaluate.build_parser, evaluate.run, "evaluate an ONNX student on bags"),
+        "pipeline": (pipeline.build_parser, pipeline.run, "bags (generated if missing) -> exported, evaluated model"),
+    }
+    for name, (build, _, help_text) in commands.items():
+        build(sub.add_parser(name, help=help_text, formatter_class=argparse.ArgumentDefaultsHelpFormatter))
+    args = parser.parse_args(argv)
+    commands[args.command][1](args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,293 @@
+"""MCAP bags -> per-instance arrays, cached as memory-mappable .npy files.
+
+Reads rosbag2 MCAP bags with ad_sim.rosbag's reader (mcap + mcap-ros2-support, no ROS runtime),
+following the bag layout of docs/architecture.md; episodes are split at each `/ad_sim/instance`
+message (ad_sim.rosbag.group_episodes) and a frame's index is its stamp offset from the
+instance's stamp in FRAME_INTERVAL units.
+
+Cache: one folder per bag (a rosbag2 folder, or a lone .mcap file), `<cache>/<key>/`, key =
+sha256 over CACHE_VERSION and, per .mcap file, its name, size and first and last MiB (the MCAP
+summary and footer sit at the end, so any rewrite changes the key). Contents:
+  meta.json            episode ids, shapes, splits, materials, seeds
+  labels.npy           (N,) int64 class index into FAMILIES
+  params_si.npy        (N, 4) float64 SI, NaN where the family lacks the parameter
+  params_norm.npy      (N, 4) float32 normalised over the union ranges (0 where not sampled)
+  param_mask.npy       (N, 4) float32 1 where the family samples the parameter (RegL1 targets)
+  trajectories.npy     (N, 25, 1024, 15) float16: x y z, median-normalised displacement, F (row-major)
+  videos.npy           (M, 25, 128, 128) uint8 0/255, one per (instance, view)
+  video_instance.npy   (M,) int64 row of the video's instance; video_view.npy (M,) int64 camera index
+  videos_<H>x<W>.npy   (M, 25, H, W) float16 in [0, 1], area-resized for a student (made on demand)
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ad_sim.materials import (
+    FAMILIES,
+    FRAME_COUNT,
+    FRAME_INTERVAL,
+    PARAMETER_NAMES,
+    SAMPLED_PARAMETERS,
+    normalise,
+)
+from ad_sim.messages import POINT_FIELDS, instance_topic, particles_topic
+from ad_sim.rosbag import BagReader, group_episodes
+
+log = logging.getLogger(__name__)
+
+CACHE_VERSION = 1
+MASK_TOPIC = re.compile(r"^/ad_sim/view_(\d+)/mask$")
+_HASH_BLOCK = 1 << 20
+
+
+def find_bags(root: str | Path) -> list[Path]:
+    """Bags under root: every folder holding .mcap files (a rosbag2 bag), or root itself if it
+    is a .mcap file or a bag folder; sorted."""
+    root = Path(root)
+    if root.is_file():
+        return [root]
+    bags = sorted({p.parent for p in root.rglob("*.mcap")})
+    if not bags:
+        raise FileNotFoundError(f"no .mcap bags under {root}; generate some with "
+                                f"`python -m ad_sim.generate --size tiny --split train --out {root}`")
+    return bags
+
+
+def _mcap_files(bag: Path) -> list[Path]:
+    return [bag] if bag.is_file() else sorted(bag.glob("*.mcap"))
+
+
+def bag_key(bag: Path) -> str:
+    """Content key of one bag (see the module docstring)."""
+    h = hashlib.sha256(f"v{CACHE_VERSION}".encode())
+    for path in _mcap_files(bag):
+        size = path.stat().st_size
+        h.update(f"{path.name}:{size}".encode())
+        with open(path, "rb") as f:
+            h.update(f.read(_HASH_BLOCK))
+            f.seek(max(0, size - _HASH_BLOCK))
+            h.update(f.read(_HASH_BLOCK))
+    return h.hexdigest()[:32]
+
+
+def _image(msg) -> np.ndarray:
+    if msg.encoding not in ("mono8", "8UC1"):
+        raise ValueError(f"mask images must be mono8, got {msg.encoding!r}")
+    data = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(msg.height, msg.step)
+    return data[:, : msg.width]
+
+
+def _particles(msg) -> np.ndarray:
+    """PointCloud2 -> (points, 15) float32 in POINT_FIELDS order (fields located by name)."""
+    offsets = {f.name: f.offset for f in msg.fields}
+    missing = [n for n in POINT_FIELDS if n not in offsets]
+    if missing:
+        raise ValueError(f"particle cloud lacks fields {missing}")
+    n = msg.width * msg.height
+    raw = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(n, msg.point_step)
+    return np.stack([raw[:, offsets[name]: offsets[name] + 4].copy().view("<f4")[:, 0] for name in POINT_FIELDS],
+                    axis=1).astype(np.float32)
+
+
+def normalise_displacement(trajectory: np.ndarray) -> np.ndarray:
+    """Scales the displacement channels (3:6) by their median magnitude over particles and
+    frames 1..T-1 (SPEC 6), in place; a motionless episode keeps its zeros."""
+    mags = np.linalg.norm(trajectory[1:, :, 3:6], axis=-1)
+    median = float(np.median(mags))
+    if median > 1e-12:
+        trajectory[:, :, 3:6] /= median
+    return trajectory
+
+
+def labels_of(material: str, names, values) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """SimInstance ground truth -> (class, SI params with NaN, normalised params, validity mask)."""
+    if material not in FAMILIES:
+        raise ValueError(f"unknown material {material!r} in bag; expected one of {FAMILIES}")
+    si = np.full(len(PARAMETER_NAMES), np.nan)
+    for name, value in zip(names, values):
+        si[PARAMETER_NAMES.index(name)] = value
+    mask = np.array([n in SAMPLED_PARAMETERS[material] for n in PARAMETER_NAMES], dtype=np.float32)
+    norm = np.array([normalise(n, si[j]) if mask[j] else 0.0 for j, n in enumerate(PARAMETER_NAMES)],
+                    dtype=np.float32)
+    return FAMILIES.index(material), si, norm, mask
+
+
+def _frames(items, start_ns: int) -> dict[int, object]:
+    """Messages of one topic keyed by frame index (stamp offset / FRAME_INTERVAL)."""
+    out = {}
+    for stamp, msg in items:
+        t = round((stamp - start_ns) * 1e-9 / FRAME_INTERVAL)
+        if 0 <= t < FRAME_COUNT:
+            out[t] = msg
+    return out
+
+
+def read_bag(bag: Path) -> list[dict]:
+    """Decodes one bag into complete episodes (incomplete ones are skipped with a warning)."""
+    out = []
+    wanted = {instance_topic(), particles_topic()}
+    topics = [t for t in BagReader(bag, recover=True).topics() if t in wanted or MASK_TOPIC.match(t)]
+    for ep in group_episodes(BagReader(bag, topics=topics, recover=True), instance_topic()):
+        inst = ep.instance
+        particles = _frames(ep.messages.get(particles_topic(), []), ep.stamp_ns)
+        videos = {}
+        for topic, items in ep.messages.items():
+            m = MASK_TOPIC.match(topic)
+            frames = _frames(items, ep.stamp_ns) if m else {}
+            if len(frames) == FRAME_COUNT:
+                videos[int(m.group(1))] = np.stack([_image(frames[t]) for t in range(FRAME_COUNT)])
+        if len(particles) != FRAME_COUNT or not videos:
+            log.warning("%s: episode %s is incomplete (%d particle frames, %d complete views); skipped",
+                        bag, inst.episode_id, len(particles), len(videos))
+            continue
+        trajectory = np.stack([_particles(particles[t]) for t in range(FRAME_COUNT)])
+        label, si, norm, mask = labels_of(inst.material, inst.parameter_names, inst.parameters)
+        out.append({
+            "episode_id": inst.episode_id, "shape": inst.shape, "split": inst.split, "material": inst.material,
+            "seed": int(inst.seed), "label": label, "params_si": si, "params_norm": norm, "param_mask": mask,
+            "trajectory": normalise_displacement(trajectory), "videos": dict(sorted(videos.items())),
+        })
+    return out
+
+
+def _write_shard(folder: Path, episodes: list[dict]) -> None:
+    tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
+    tmp.mkdir(parents=True, exist_ok=True)
+    np.save(tmp / "labels.npy", np.array([e["label"] for e in episodes], dtype=np.int64))
+    np.save(tmp / "params_si.npy", np.array([e["params_si"] for e in episodes], dtype=np.float64).reshape(-1, 4))
+    np.save(tmp / "params_norm.npy", np.array([e["params_norm"] for e in episodes], dtype=np.float32).reshape(-1, 4))
+    np.save(tmp / "param_mask.npy", np.array([e["param_mask"] for e in episodes], dtype=np.float32).reshape(-1, 4))
+    np.save(tmp / "trajectories.npy", np.array([e["trajectory"] for e in episodes], dtype=np.float16))
+    videos, owner, views = [], [], []
+    for i, e in enumerate(episodes):
+        for v, video in e["videos"].items():
+            videos.append(video)
+            owner.append(i)
+            views.append(v)
+    np.save(tmp / "videos.npy", np.array(videos, dtype=np.uint8).reshape(-1, FRAME_COUNT, *(
+        videos[0].shape[1:] if videos else (128, 128))))
+    np.save(tmp / "video_instance.npy", np.array(owner, dtype=np.int64))
+    np.save(tmp / "video_view.npy", np.array(views, dtype=np.int64))
+    meta = {key: [e[key] for e in episodes] for key in ("episode_id", "shape", "split", "material", "seed")}
+    (tmp / "meta.json").write_text(json.dumps(meta))
+    os.replace(tmp, folder)  # atomic: a killed run never leaves a half-written shard
+
+
+class Dataset:
+    """All instances of a set of bags; small arrays in memory, big ones memory-mapped per shard."""
+
+    def __init__(self, shards: list[Path]):
+        self.shards = shards
+        load = lambda name: [np.load(s / name, mmap_mode="r") for s in shards]  # noqa: E731
+        self._trajectories = load("trajectories.npy")
+        self._videos = load("videos.npy")
+        self.labels = np.concatenate([np.asarray(a) for a in load("labels.npy")]) if shards else np.zeros(0, int)
+        self.params_si = np.concatenate([np.asarray(a) for a in load("params_si.npy")]).reshape(-1, 4)
+        self.params_norm = np.concatenate([np.asarray(a) for a in load("params_norm.npy")]).reshape(-1, 4)
+        self.param_mask = np.concatenate([np.asarray(a) for a in load("param_mask.npy")]).reshape(-1, 4)
+        metas = [json.loads((s / "meta.json").read_text()) for s in shards]
+        self.meta = {k: sum((m[k] for m in metas), []) for k in ("episode_id", "shape", "split", "material", "seed")}
+        self.episode_ids: list[str] = self.meta["episode_id"]
+        # Global instance index -> (shard, row); global video index -> (shard, row, instance).
+        self._inst_loc = [(s, r) for s, a in enumerate(self._trajectories) for r in range(len(a))]
+        offsets = np.cumsum([0] + [len(a) for a in self._trajectories])
+        self.video_loc, video_instance, video_view = [], [], []
+        for s, shard in enumerate(shards):
+            owners = np.load(shard / "video_instance.npy")
+            for r, owner in enumerate(owners):
+                self.video_loc.append((s, r))
+            video_instance.append(owners + offsets[s])
+            video_view.append(np.load(shard / "video_view.npy"))
+        self.video_instance = np.concatenate(video_instance) if shards else np.zeros(0, int)
+        self.video_view = np.concatenate(video_view) if shards else np.zeros(0, int)
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    @property
+    def num_videos(self) -> int:
+        return len(self.video_instance)
+
+    def trajectory(self, i: int) -> np.ndarray:
+        """(25, 1024, 15) float32 of instance i."""
+        s, r = self._inst_loc[i]
+        return np.asarray(self._trajectories[s][r], dtype=np.float32)
+
+    def video(self, j: int) -> np.ndarray:
+        """(25, 128, 128) uint8 0/255 mask video j."""
+        s, r = self.video_loc[j]
+        return np.asarray(self._videos[s][r])
+
+    def videos_of(self, instances: np.ndarray) -> np.ndarray:
+        """Indices of every video of the given instances."""
+        return np.flatnonzero(np.isin(self.video_instance, instances))
+
+    def first_view_videos(self, instances: np.ndarray | None = None) -> np.ndarray:
+        """One video per instance (its lowest view), the evaluation convention."""
+        pick = {}
+        for j, (i, v) in enumerate(zip(self.video_instance, self.video_view)):
+            if (instances is None or i in instances) and (i not in pick or v < self.video_view[pick[i]]):
+                pick[int(i)] = j
+        return np.array([pick[i] for i in sorted(pick)], dtype=np.int64)
+
+
+def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True) -> Dataset:
+    """Decodes every bag under `bags` that is not cached yet, then opens the cached dataset."""
+    cache_dir = Path(cache_dir)
+    shards = []
+    for path in tqdm(find_bags(bags), desc="cache bags", disable=not progress, unit="bag"):
+        folder = cache_dir / bag_key(path)
+        if not (folder / "meta.json").exists():
+            episodes = read_bag(path)
+            if not episodes:
+                log.warning("%s holds no complete episode", path)
+                continue
+            _write_shard(folder, episodes)
+        shards.append(folder)
+    if not shards:
+        raise RuntimeError(f"no complete episodes in the bags under {bags}")
+    return Dataset(shards)
+
+
+def split_instances(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic train/val split of instance indices (all views of an instance stay together)."""
+    order = np.random.default_rng(seed).permutation(n)
+    n_val = int(round(n * val_fraction)) if n > 1 else 0
+    n_val = min(max(n_val, 1 if val_fraction > 0 and n > 1 else 0), n - 1) if n > 1 else 0
+    return np.sort(order[n_val:]), np.sort(order[:n_val])
+
+
+def resize_masks(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(..., H, W) uint8 0/255 masks -> (..., h, w) float32 in [0, 1], area-averaged (what the
+    estimator does to camera frames before the model)."""
+    import cv2
+
+    h, w = size
+    flat = frames.reshape(-1, *frames.shape[-2:])
+    if flat.shape[-2:] == (h, w):
+        out = flat.astype(np.float32)
+    else:
+        out = np.stack([cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA) for f in flat]).astype(np.float32)
+    return (out / 255.0).reshape(*frames.shape[:-2], h, w)
+
+
+def resized_videos(dataset: Dataset, size: tuple[int, int]) -> list[np.ndarray]:
+    """Per shard, every video resized to `size` as float16 in [0, 1], cached beside the shard."""
+    out = []
+    for shard in tqdm(dataset.shards, desc=f"resize videos {size[0]}x{size[1]}", unit="bag", leave=False):
+        path = shard / f"videos_{size[0]}x{size[1]}.npy"
+        if not path.exists():
+            videos = np.load(shard / "videos.npy", mmap_mode="r")
+            tmp = path.with_name(path.name + f".tmp{os.getpid()}.npy")
+            np.save(tmp, resize_masks(np.asarray(videos), size).astype(np.float16))
+            os.replace(tmp, path)
+        out.append(np.load(path, mmap_mode="r"))
+    return out

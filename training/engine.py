@@ -1,0 +1,218 @@
+"""Training loop shared by teacher and students: AdamW + cosine schedule, DDP via torchrun,
+checkpoints every epoch that resume after a kill.
+
+Checkpoints hold only tensors, dicts, lists, ints, floats, strs and bools so that they load with
+torch.load(weights_only=True).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.utils.data import DataLoader, DistributedSampler
+from tqdm import tqdm
+
+LAST = "last.pt"
+BEST = "best.pt"
+
+
+@dataclass
+class Runtime:
+    rank: int
+    world: int
+    device: torch.device
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def init_runtime(device: str = "auto") -> Runtime:
+    """Single process, or one process per GPU/CPU slot under torchrun (WORLD_SIZE > 1)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError("--device cuda asked for, but torch sees no GPU; use --device cpu")
+    if world > 1:
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        if device.startswith("cuda"):
+            torch.cuda.set_device(local)
+            dev = torch.device("cuda", local)
+        else:
+            dev = torch.device("cpu")
+        if not dist.is_initialized():
+            dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+        return Runtime(dist.get_rank(), world, dev)
+    return Runtime(0, 1, torch.device(device))
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def cosine_lr(step: int, total: int, lr: float, min_lr: float, warmup: int) -> float:
+    """Linear warm-up, then cosine from lr down to min_lr at the last step."""
+    if step < warmup:
+        return lr * (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return min_lr + 0.5 * (lr - min_lr) * (1.0 + math.cos(math.pi * progress))
+
+
+def rng_state() -> dict:
+    state = {"torch": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    """Atomic: a kill mid-write leaves the previous checkpoint intact."""
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
+    return torch.load(path, map_location=device, weights_only=True)
+
+
+def _unwrap(model: torch.nn.Module) -> torch.nn.Module:
+    return model.module if isinstance(model, torch.nn.parallel.DistributedDataParallel) else model
+
+
+def _reduce_mean(values: dict[str, float], count: int, rt: Runtime) -> dict[str, float]:
+    """Count-weighted mean of per-process sums across ranks."""
+    keys = sorted(values)
+    t = torch.tensor([values[k] for k in keys] + [float(count)], dtype=torch.float64, device=rt.device)
+    if rt.world > 1:
+        dist.all_reduce(t)
+    n = max(t[-1].item(), 1.0)
+    return {k: t[i].item() / n for i, k in enumerate(keys)}
+
+
+@dataclass
+class FitConfig:
+    epochs: int
+    batch_size: int
+    lr: float = 1e-4
+    weight_decay: float = 1e-4
+    min_lr: float = 1e-6
+    warmup_fraction: float = 0.05
+    seed: int = 0
+    grad_clip: float = 1.0
+    progress: bool = True
+
+
+def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: Path, cfg: FitConfig, rt: Runtime,
+        meta: dict, select: str = "score", desc: str = "train") -> dict:
+    """Trains `model` (already on rt.device) and returns the history.
+
+    loss_fn(model, batch, train: bool) -> (loss tensor, {name: float tensor}); the batch is a dict
+    of tensors on rt.device. Every epoch: validate, log, save LAST (model, optimizer, epoch,
+    step, RNG, history, meta) and BEST by the validation `select` metric (lower is better).
+    A run finds LAST in out_dir and resumes from it.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sampler = DistributedSampler(train_set, num_replicas=rt.world, rank=rt.rank, shuffle=True, seed=cfg.seed,
+                                 drop_last=len(train_set) >= cfg.batch_size * rt.world)
+    loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=sampler, drop_last=False,
+                        num_workers=0, pin_memory=rt.device.type == "cuda")
+    val_sampler = DistributedSampler(val_set, num_replicas=rt.world, rank=rt.rank, shuffle=False) \
+        if val_set is not None and len(val_set) else None
+    val_loader = DataLoader(val_set, batch_size=cfg.batch_size, sampler=val_sampler) if val_sampler else None
+
+    raw = model
+    if rt.world > 1:
+        model = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[rt.device.index] if rt.device.type == "cuda" else None)
+    optimizer = torch.optim.AdamW([p for p in raw.parameters() if p.requires_grad], lr=cfg.lr,
+                                  weight_decay=cfg.weight_decay)
+    total = cfg.epochs * max(1, len(loader))
+    warmup = int(cfg.warmup_fraction * total)
+    epoch, step, history, best = 0, 0, [], float("inf")
+
+    last = out_dir / LAST
+    if last.exists():
+        state = load_checkpoint(last, rt.device)
+        raw.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        epoch, step, history, best = state["epoch"], state["step"], state["history"], state["best"]
+        set_rng_state({k: (v.cpu() if isinstance(v, torch.Tensor) else [t.cpu() for t in v])
+                       for k, v in state["rng"].items()})
+        if rt.main:
+            tqdm.write(f"{desc}: resumed from {last} at epoch {epoch}")
+
+    while epoch < cfg.epochs:
+        sampler.set_epoch(epoch)
+        if hasattr(train_set, "set_epoch"):
+            train_set.set_epoch(epoch)
+        model.train()
+        sums, count = {}, 0
+        bar = tqdm(loader, desc=f"{desc} epoch {epoch + 1}/{cfg.epochs}", disable=not (rt.main and cfg.progress),
+                   leave=False, unit="batch")
+        for batch in bar:
+            batch = {k: v.to(rt.device, non_blocking=True) for k, v in batch.items()}
+            for group in optimizer.param_groups:
+                group["lr"] = cosine_lr(step, total, cfg.lr, cfg.min_lr, warmup)
+            loss, logs = loss_fn(model, batch, True)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(raw.parameters(), cfg.grad_clip)
+            optimizer.step()
+            step += 1
+            n = len(next(iter(batch.values())))
+            count += n
+            for k, v in {"loss": loss.detach(), **logs}.items():
+                sums[k] = sums.get(k, 0.0) + float(v) * n
+            bar.set_postfix(loss=f"{loss.item():.3f}")
+        record = {"epoch": epoch + 1, "lr": optimizer.param_groups[0]["lr"]}
+        record.update({f"train_{k}": v for k, v in _reduce_mean(sums, count, rt).items()})
+        if val_loader is not None:
+            record.update({f"val_{k}": v for k, v in evaluate_loss(model, val_loader, loss_fn, rt).items()})
+        history.append(record)
+        epoch += 1
+        score = record.get(f"val_{select}", record.get(f"train_{select}", record["train_loss"]))
+        if rt.main:
+            if score < best:
+                best = score
+                save_checkpoint(out_dir / BEST, {"model": raw.state_dict(), "epoch": epoch, "meta": meta})
+            save_checkpoint(last, {"model": raw.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch,
+                                   "step": step, "rng": rng_state(), "history": history, "best": best,
+                                   "meta": meta})
+            (out_dir / "history.json").write_text(json.dumps(history, indent=1))
+            tqdm.write(f"{desc} " + " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                             for k, v in record.items()))
+        if rt.world > 1:
+            dist.barrier()
+    return {"history": history, "best": best}
+
+
+@torch.no_grad()
+def evaluate_loss(model, loader, loss_fn, rt: Runtime) -> dict[str, float]:
+    model.eval()
+    sums, count = {}, 0
+    for batch in loader:
+        batch = {k: v.to(rt.device) for k, v in batch.items()}
+        loss, logs = loss_fn(model, batch, False)
+        n = len(next(iter(batch.values())))
+        count += n
+        for k, v in {"loss": loss, **logs}.items():
+            sums[k] = sums.get(k, 0.0) + float(v) * n
+    return _reduce_mean(sums, count, rt)

@@ -1,0 +1,156 @@
+"""Export a student checkpoint to ONNX with the metadata of docs/architecture.md.
+
+streaming: <name>.frame.onnx (frame (B,1,H,W) -> embedding (B,D)) and <name>.onnx (embeddings
+(B,T,D), valid (B,T) -> logits, params, params_logvar). clip: <name>.onnx (masks (B,T,H,W),
+valid (B,T) -> the same outputs; fewer than 25 frames are zero-padded inside the graph).
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+from torch import nn
+
+from ad_sim.materials import (
+    FAMILIES,
+    FAMILY_PARAMETERS,
+    FIXED_PARAMETERS,
+    FRAME_COUNT,
+    FRAME_INTERVAL,
+    PARAMETER_NAMES,
+    PARAMETER_RANGES,
+)
+from training.train_student import load_student
+
+OUTPUTS = ["logits", "params", "params_logvar"]
+OPSET = 17
+
+
+class _Outputs(nn.Module):
+    """Wraps a head so the graph returns the three contract outputs as a tuple."""
+
+    def __init__(self, head: nn.Module):
+        super().__init__()
+        self.head = head
+
+    def forward(self, x: torch.Tensor, valid: torch.Tensor):
+        out = self.head(x, valid)
+        return out["logits"], out["params"], out["params_logvar"]
+
+
+def metadata(model_id: str, kind: str, input_size, extra: dict | None = None) -> dict[str, str]:
+    meta = {
+        "ad.model_id": model_id,
+        "ad.kind": kind,
+        "ad.class_names": json.dumps(list(FAMILIES)),
+        "ad.parameter_names": json.dumps(list(PARAMETER_NAMES)),
+        "ad.parameter_ranges": json.dumps({n: list(PARAMETER_RANGES[n]) for n in PARAMETER_NAMES}),
+        "ad.family_parameters": json.dumps({f: list(FAMILY_PARAMETERS[f]) for f in FAMILIES}),
+        "ad.fixed_parameters": json.dumps({f: FIXED_PARAMETERS[f] for f in FAMILIES}),
+        "ad.frame_interval": repr(FRAME_INTERVAL),
+        "ad.frame_count": str(FRAME_COUNT),
+        "ad.input_size": json.dumps(list(input_size)),
+    }
+    meta.update(extra or {})
+    return meta
+
+
+def _attach(path: Path, meta: dict[str, str]) -> None:
+    model = onnx.load(str(path))
+    del model.metadata_props[:]
+    for k, v in meta.items():
+        model.metadata_props.add(key=k, value=v)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+
+
+def _export(module: nn.Module, args: tuple, path: Path, inputs: list[str], outputs: list[str], dynamic: dict) -> None:
+    torch.onnx.export(module, args, str(path), input_names=inputs, output_names=outputs, dynamic_axes=dynamic,
+                      opset_version=OPSET, dynamo=False, do_constant_folding=True)
+
+
+def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None = None) -> list[Path]:
+    """Writes the ONNX file(s) for a student checkpoint; `out` is <name>.onnx. Returns the paths."""
+    model, meta = load_student(checkpoint)
+    model = model.float().eval()
+    config = model.config
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    digest = hashlib.sha256(b"".join(p.detach().numpy().tobytes() for p in model.state_dict().values())).hexdigest()
+    model_id = model_id or f"{out.stem}-{config.kind}-{meta.get('ablation', 'full')}-{digest[:8]}"
+    h, w = config.input_size
+    extra = {"ad.training": json.dumps({k: meta[k] for k in ("size", "ablation", "seed") if k in meta})}
+    written = []
+    with torch.no_grad():
+        if config.kind == "streaming":
+            frame_path = out.with_name(out.stem + ".frame.onnx")
+            _export(model.frame_encoder, (torch.zeros(2, 1, h, w),), frame_path, ["frame"], ["embedding"],
+                    {"frame": {0: "batch"}, "embedding": {0: "batch"}})
+            d = config.embed_dim
+            _export(_Outputs(model.temporal), (torch.zeros(2, FRAME_COUNT, d), torch.ones(2, FRAME_COUNT)), out,
+                    ["embeddings", "valid"], OUTPUTS,
+                    {"embeddings": {0: "batch", 1: "time"}, "valid": {0: "batch", 1: "time"},
+                     **{o: {0: "batch"} for o in OUTPUTS}})
+            extra.update({"ad.frame_encoder": frame_path.name, "ad.embedding_dim": str(d)})
+            meta_all = metadata(model_id, "streaming", (h, w), extra)
+            _attach(frame_path, meta_all)
+            written.append(frame_path)
+        else:
+            _export(_Outputs(model), (torch.zeros(2, FRAME_COUNT, h, w), torch.ones(2, FRAME_COUNT)), out,
+                    ["masks", "valid"], OUTPUTS,
+                    {"masks": {0: "batch"}, "valid": {0: "batch"}, **{o: {0: "batch"} for o in OUTPUTS}})
+            meta_all = metadata(model_id, "clip", (h, w), extra)
+        _attach(out, meta_all)
+    written.append(out)
+    return written
+
+
+def verify_export(checkpoint: str | Path, onnx_path: str | Path, seed: int = 0, atol: float = 1e-4) -> float:
+    """Max |onnxruntime - torch| over the outputs on random masks; raises if above atol."""
+    import onnxruntime as ort
+
+    model, _ = load_student(checkpoint)
+    model = model.float().eval()
+    h, w = model.config.input_size
+    rng = np.random.default_rng(seed)
+    masks = (rng.random((2, FRAME_COUNT, h, w)) > 0.5).astype(np.float32)
+    valid = np.ones((2, FRAME_COUNT), np.float32)
+    valid[1, 17:] = 0.0
+    masks[1, 17:] = 0.0
+    with torch.no_grad():
+        ref = model(torch.from_numpy(masks), torch.from_numpy(valid))
+    onnx_path = Path(onnx_path)
+    opts = ort.SessionOptions()
+    if model.config.kind == "streaming":
+        frame = ort.InferenceSession(str(onnx_path.with_name(onnx_path.stem + ".frame.onnx")), opts)
+        emb = frame.run(None, {"frame": masks.reshape(-1, 1, h, w)})[0].reshape(2, FRAME_COUNT, -1)
+        got = ort.InferenceSession(str(onnx_path), opts).run(OUTPUTS, {"embeddings": emb, "valid": valid})
+    else:
+        got = ort.InferenceSession(str(onnx_path), opts).run(OUTPUTS, {"masks": masks, "valid": valid})
+    err = max(float(np.abs(g - ref[name].numpy()).max()) for g, name in zip(got, OUTPUTS))
+    if err > atol:
+        raise RuntimeError(f"ONNX export of {checkpoint} differs from torch by {err:.2e} (> {atol})")
+    return err
+
+
+def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="python -m training export")
+    p.description = ("Export a student checkpoint to ONNX with the estimator's metadata (streaming students: "
+                     "<name>.frame.onnx + <name>.onnx), then check onnxruntime against torch.")
+    p.add_argument("--checkpoint", required=True, help="student checkpoint (best.pt or last.pt)")
+    p.add_argument("--out", required=True, help="output <name>.onnx")
+    p.add_argument("--model-id", help="ad.model_id (default: <name>-<kind>-<ablation>-<weights hash>)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the verification input")
+    return p
+
+
+def run(args) -> list[Path]:
+    paths = export_student(args.checkpoint, args.out, args.model_id)
+    err = verify_export(args.checkpoint, args.out, args.seed)
+    print(f"exported {', '.join(map(str, paths))}; onnxruntime vs torch max error {err:.2e}")
+    return paths

@@ -1,0 +1,129 @@
+"""Building blocks shared by teacher and students: a mask-aware transformer (plain ops, so it
+exports to ONNX), the projector and the prediction heads, and the losses of SPEC 9."""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+NUM_CLASSES = 3
+NUM_PARAMS = 4
+
+
+class Attention(nn.Module):
+    def __init__(self, dim: int, heads: int, dropout: float = 0.0):
+        super().__init__()
+        if dim % heads:
+            raise ValueError(f"width {dim} is not divisible by {heads} heads")
+        self.heads, self.scale = heads, 1.0 / math.sqrt(dim // heads)
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.out = nn.Linear(dim, dim)
+        self.drop = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, key_bias: torch.Tensor | None = None) -> torch.Tensor:
+        b, n, d = x.shape
+        q, k, v = self.qkv(x).reshape(b, n, 3, self.heads, d // self.heads).permute(2, 0, 3, 1, 4).unbind(0)
+        scores = (q @ k.transpose(-2, -1)) * self.scale
+        if key_bias is not None:  # (B, N): 0 for valid keys, large negative for padding
+            scores = scores + key_bias[:, None, None, :]
+        attn = self.drop(scores.softmax(dim=-1))
+        return self.out((attn @ v).transpose(1, 2).reshape(b, n, d))
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block."""
+
+    def __init__(self, dim: int, heads: int, mlp_ratio: float = 4.0, dropout: float = 0.0):
+        super().__init__()
+        self.norm1, self.norm2 = nn.LayerNorm(dim), nn.LayerNorm(dim)
+        self.attn = Attention(dim, heads, dropout)
+        hidden = int(dim * mlp_ratio)
+        self.mlp = nn.Sequential(nn.Linear(dim, hidden), nn.GELU(), nn.Dropout(dropout), nn.Linear(hidden, dim))
+
+    def forward(self, x: torch.Tensor, key_bias: torch.Tensor | None = None) -> torch.Tensor:
+        x = x + self.attn(self.norm1(x), key_bias)
+        return x + self.mlp(self.norm2(x))
+
+
+class Transformer(nn.Module):
+    def __init__(self, dim: int, depth: int, heads: int, dropout: float = 0.0):
+        super().__init__()
+        self.blocks = nn.ModuleList(Block(dim, heads, dropout=dropout) for _ in range(depth))
+        self.norm = nn.LayerNorm(dim)
+
+    def forward(self, x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        key_bias = None if valid is None else (1.0 - valid) * -1e4
+        for block in self.blocks:
+            x = block(x, key_bias)
+        return self.norm(x)
+
+
+def masked_pool(x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, N, D) -> (B, 2D): mean and max over valid tokens."""
+    if valid is None:
+        return torch.cat([x.mean(1), x.amax(1)], dim=-1)
+    w = valid.unsqueeze(-1)
+    mean = (x * w).sum(1) / w.sum(1).clamp(min=1.0)
+    mx = (x + (1.0 - w) * -1e4).amax(1)
+    return torch.cat([mean, mx], dim=-1)
+
+
+class Predictor(nn.Module):
+    """z -> class logits, normalised parameters (sigmoid, in [0, 1]) and their log-variance.
+    Teacher and student share this shape, so a student can reuse the teacher's predictor."""
+
+    def __init__(self, z_dim: int):
+        super().__init__()
+        self.hidden = nn.Sequential(nn.GELU(), nn.Linear(z_dim, z_dim), nn.GELU())
+        self.cls = nn.Linear(z_dim, NUM_CLASSES)
+        self.params = nn.Linear(z_dim, NUM_PARAMS)
+        self.logvar = nn.Linear(z_dim, NUM_PARAMS)
+
+    def forward(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
+        h = self.hidden(z)
+        return {"z": z, "logits": self.cls(h), "params": torch.sigmoid(self.params(h)),
+                "params_logvar": self.logvar(h).clamp(-12.0, 4.0)}
+
+
+class Heads(nn.Module):
+    """Pooled feature -> projector z (the aligned representation) -> predictor."""
+
+    def __init__(self, in_dim: int, hidden: int, z_dim: int):
+        super().__init__()
+        self.projector = nn.Sequential(nn.LayerNorm(in_dim), nn.Linear(in_dim, hidden), nn.GELU(),
+                                       nn.Linear(hidden, z_dim))
+        self.predictor = Predictor(z_dim)
+
+    def forward(self, pooled: torch.Tensor) -> dict[str, torch.Tensor]:
+        return self.predictor(self.projector(pooled))
+
+
+def masked_regl1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean |pred - target| over each sample's valid (sampled) parameters, then over the batch."""
+    per = (torch.abs(pred - target) * mask).sum(1) / mask.sum(1).clamp(min=1.0)
+    return per.mean()
+
+
+def uncertainty_nll(out: dict, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Gaussian NLL of the log-variance head around the (detached) prediction, so it learns the
+    error scale without changing what the parameter head learns."""
+    err2 = (out["params"].detach() - target) ** 2
+    nll = 0.5 * (err2 * torch.exp(-out["params_logvar"]) + out["params_logvar"])
+    return ((nll * mask).sum(1) / mask.sum(1).clamp(min=1.0)).mean()
+
+
+def task_loss(out: dict, labels: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
+              regl1_weight: float = 1.0, nll_weight: float = 0.05) -> tuple[torch.Tensor, dict]:
+    ce = F.cross_entropy(out["logits"], labels)
+    reg = masked_regl1(out["params"], target, mask)
+    nll = uncertainty_nll(out, target, mask)
+    loss = ce + regl1_weight * reg + nll_weight * nll
+    return loss, {"ce": ce.detach(), "regl1": reg.detach(), "nll": nll.detach()}
+
+
+def align_loss(z_v: torch.Tensor, z_t: torch.Tensor, alpha: float) -> torch.Tensor:
+    """1 - cos(z_V, z_T) + alpha * mean |z_V - z_T| (SPEC 9)."""
+    cos = F.cosine_similarity(z_v, z_t, dim=-1)
+    return (1.0 - cos).mean() + alpha * torch.abs(z_v - z_t).mean()

@@ -1,0 +1,198 @@
+"""Stage II video students.
+
+`streaming`: each frame is encoded once on its own by a small 2D CNN (cheap on a robot CPU); a
+small transformer with learned time embeddings reads the embeddings of up to 25 frames (a valid
+mask marks observed ones), so a new frame costs one frame encoding plus a tiny temporal head.
+
+`uniformer`: a UniFormer-XXS-style clip encoder like the paper's: 3D conv stem, local MHRA
+(depthwise 3D conv relation aggregators) in the early stages, global self-attention in the late
+ones. Input is the full 25-frame clip; unobserved frames are zeroed by the valid mask.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from training.models.common import Heads, Transformer, masked_pool
+
+FRAME_COUNT = 25
+
+
+@dataclass
+class StudentConfig:
+    kind: str = "streaming"  # streaming | uniformer
+    input_size: tuple[int, int] = (64, 64)
+    z_dim: int = 256  # must match the teacher's
+    # streaming
+    channels: tuple[int, ...] = (16, 32, 64, 96)
+    embed_dim: int = 128
+    temporal_width: int = 128
+    temporal_depth: int = 2
+    temporal_heads: int = 4
+    # uniformer
+    dims: tuple[int, ...] = (32, 64, 128, 256)
+    depths: tuple[int, ...] = (1, 2, 2, 1)
+    global_stages: int = 2  # the last stages use global attention
+    dropout: float = 0.1
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "StudentConfig":
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+def student_preset(kind: str, size: str, z_dim: int) -> StudentConfig:
+    """Model size presets: paper (GPU), small (2-core CPU in minutes), tiny (tests)."""
+    if kind not in ("streaming", "uniformer"):
+        raise ValueError(f"unknown student kind {kind!r}; expected streaming or uniformer")
+    presets = {
+        ("streaming", "paper"): dict(input_size=(96, 96), channels=(24, 48, 96, 128, 192), embed_dim=192,
+                                     temporal_width=192, temporal_depth=3, temporal_heads=6),
+        ("streaming", "small"): dict(channels=(12, 24, 48, 96), embed_dim=96, temporal_width=96),
+        ("streaming", "tiny"): dict(input_size=(32, 32), channels=(8, 16), embed_dim=32, temporal_width=32,
+                                    temporal_depth=1, temporal_heads=2, dropout=0.0),
+        # UniFormer-XXS: dims 64-128-256-512, depths 2-5-8-2, 128x128 input.
+        ("uniformer", "paper"): dict(input_size=(128, 128), dims=(64, 128, 256, 512), depths=(2, 5, 8, 2)),
+        ("uniformer", "small"): dict(input_size=(64, 64)),
+        ("uniformer", "tiny"): dict(input_size=(32, 32), dims=(8, 16), depths=(1, 1), global_stages=1,
+                                    dropout=0.0),
+    }
+    if size not in ("paper", "small", "tiny"):
+        raise ValueError(f"unknown model size {size!r}; expected paper, small or tiny")
+    return StudentConfig(kind=kind, z_dim=z_dim, **presets[(kind, size)])
+
+
+def _conv_bn(cin: int, cout: int, stride: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False), nn.BatchNorm2d(cout),
+                         nn.ReLU(inplace=True))
+
+
+class FrameEncoder(nn.Module):
+    """(B, 1, H, W) in [0, 1] -> (B, D). Stride-2 conv stages down to a 4x4 map, flattened so the
+    embedding keeps where the object is in the image (position matters: it falls and lands)."""
+
+    def __init__(self, config: StudentConfig):
+        super().__init__()
+        layers, cin = [], 1
+        for cout in config.channels:
+            layers += [_conv_bn(cin, cout, 2), _conv_bn(cout, cout, 1)] if cout == config.channels[-1] else \
+                [_conv_bn(cin, cout, 2)]
+            cin = cout
+        self.features = nn.Sequential(*layers)
+        self.pool = nn.AdaptiveAvgPool2d(4)
+        self.project = nn.Sequential(nn.Flatten(), nn.Linear(cin * 16, config.embed_dim), nn.LayerNorm(config.embed_dim))
+
+    def forward(self, frame: torch.Tensor) -> torch.Tensor:
+        return self.project(self.pool(self.features(frame)))
+
+
+class TemporalHead(nn.Module):
+    """(B, T, D) frame embeddings + (B, T) valid mask -> heads. Token t sees its own embedding,
+    the change from the previous frame and a learned embedding of its frame index."""
+
+    def __init__(self, config: StudentConfig):
+        super().__init__()
+        w = config.temporal_width
+        self.input = nn.Linear(2 * config.embed_dim, w)
+        self.time = nn.Parameter(torch.zeros(1, FRAME_COUNT, w))
+        nn.init.normal_(self.time, std=0.02)
+        self.transformer = Transformer(w, config.temporal_depth, config.temporal_heads, config.dropout)
+        self.heads = Heads(2 * w, w, config.z_dim)
+
+    def forward(self, embeddings: torch.Tensor, valid: torch.Tensor) -> dict[str, torch.Tensor]:
+        t = embeddings.shape[1]
+        e = embeddings * valid.unsqueeze(-1)
+        previous = torch.cat([e[:, :1], e[:, :-1]], dim=1)
+        change = (e - previous) * valid.unsqueeze(-1)
+        x = self.input(torch.cat([e, change], dim=-1)) + self.time[:, :t]
+        return self.heads(masked_pool(self.transformer(x, valid), valid))
+
+
+class StreamingStudent(nn.Module):
+    def __init__(self, config: StudentConfig):
+        super().__init__()
+        self.config = config
+        self.frame_encoder = FrameEncoder(config)
+        self.temporal = TemporalHead(config)
+
+    @property
+    def heads(self):
+        return self.temporal.heads
+
+    def forward(self, masks: torch.Tensor, valid: torch.Tensor) -> dict[str, torch.Tensor]:
+        """masks (B, T, H, W) in [0, 1], valid (B, T)."""
+        b, t, h, w = masks.shape
+        emb = self.frame_encoder(masks.reshape(b * t, 1, h, w)).reshape(b, t, -1)
+        return self.temporal(emb, valid)
+
+
+class LocalMHRA(nn.Module):
+    """UniFormer local block: dynamic position encoding, local relation aggregator (depthwise 3D
+    conv between pointwise convs), then a pointwise-conv MLP."""
+
+    def __init__(self, dim: int, dropout: float):
+        super().__init__()
+        self.pos = nn.Conv3d(dim, dim, 3, padding=1, groups=dim)
+        self.norm1 = nn.BatchNorm3d(dim)
+        self.aggregate = nn.Sequential(nn.Conv3d(dim, dim, 1), nn.Conv3d(dim, dim, (3, 5, 5), padding=(1, 2, 2),
+                                                                         groups=dim), nn.Conv3d(dim, dim, 1))
+        self.norm2 = nn.BatchNorm3d(dim)
+        self.mlp = nn.Sequential(nn.Conv3d(dim, 4 * dim, 1), nn.GELU(), nn.Dropout(dropout), nn.Conv3d(4 * dim, dim, 1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x + self.pos(x)
+        x = x + self.aggregate(self.norm1(x))
+        return x + self.mlp(self.norm2(x))
+
+
+class GlobalMHRA(nn.Module):
+    """UniFormer global block: dynamic position encoding then self-attention over all tokens."""
+
+    def __init__(self, dim: int, heads: int, dropout: float):
+        super().__init__()
+        self.pos = nn.Conv3d(dim, dim, 3, padding=1, groups=dim)
+        self.transformer = Transformer(dim, 1, heads, dropout)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x + self.pos(x)
+        b, c, t, h, w = x.shape
+        tokens = self.transformer(x.flatten(2).transpose(1, 2))
+        return tokens.transpose(1, 2).reshape(b, c, t, h, w)
+
+
+class UniFormerStudent(nn.Module):
+    def __init__(self, config: StudentConfig):
+        super().__init__()
+        self.config = c = config
+        n = len(c.dims)
+        stages, cin = [], 1
+        for i, (dim, depth) in enumerate(zip(c.dims, c.depths)):
+            # Stem: 4x spatial and 2x temporal downsampling; later stages halve space only.
+            down = nn.Conv3d(cin, dim, (3, 4, 4), stride=(2, 4, 4), padding=(1, 0, 0)) if i == 0 else \
+                nn.Conv3d(cin, dim, (1, 2, 2), stride=(1, 2, 2))
+            blocks = [GlobalMHRA(dim, max(1, dim // 64), c.dropout) if i >= n - c.global_stages
+                      else LocalMHRA(dim, c.dropout) for _ in range(depth)]
+            stages.append(nn.Sequential(down, *blocks))
+            cin = dim
+        self.stages = nn.Sequential(*stages)
+        self.norm = nn.LayerNorm(cin)
+        self.heads = Heads(2 * cin, cin, c.z_dim)
+
+    def forward(self, masks: torch.Tensor, valid: torch.Tensor) -> dict[str, torch.Tensor]:
+        """masks (B, 25, H, W) in [0, 1], valid (B, 25); fewer frames are zero-padded to 25."""
+        if masks.shape[1] < FRAME_COUNT:
+            pad = FRAME_COUNT - masks.shape[1]
+            masks, valid = F.pad(masks, (0, 0, 0, 0, 0, pad)), F.pad(valid, (0, pad))
+        x = (masks * valid[:, :, None, None]).unsqueeze(1)
+        x = self.stages(x).flatten(2).transpose(1, 2)
+        return self.heads(masked_pool(self.norm(x)))
+
+
+def build_student(config: StudentConfig) -> nn.Module:
+    return StreamingStudent(config) if config.kind == "streaming" else UniFormerStudent(config)

@@ -1,0 +1,150 @@
+"""Everything for one benchmark size: bags (generated with ad_sim.generate when missing) ->
+teacher -> students (one per ablation) -> ONNX -> evaluation on seen and unseen objects.
+
+Every stage resumes: generation skips finished shards, training resumes from last.pt, and a
+finished training (all epochs in last.pt) is not redone.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import time
+from argparse import Namespace
+from pathlib import Path
+
+from ad_sim.materials import FRAME_COUNT
+from training import evaluate, export, train_student, train_teacher
+from training.train_student import ABLATIONS
+
+# Epochs per size: paper values (SPEC 9) for `paper`; `small` fits 2 CPU cores in under an hour.
+EPOCHS = {"tiny": (2, 2), "small": (12, 8), "paper": (300, 20)}
+BATCH = {"tiny": (4, 8), "small": (16, 32), "paper": (32, 32)}
+SPLITS = ("train", "seen", "unseen")
+
+
+def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str) -> Path:
+    """data_dir/<size>/<split>, generated (resumably) if it holds no finished bag."""
+    from ad_sim.generate import main as generate
+
+    folder = data_dir / size / split
+    if not list(folder.rglob("*.mcap")) or not list(folder.rglob("DONE")):
+        print(f"generating {size}/{split} bags into {folder} (ad_sim.generate, resumable)")
+        code = generate(["--size", size, "--split", split, "--seed", str(seed), "--out", str(folder),
+                         "--device", "cuda" if device == "cuda" else "cpu"])
+        if code:
+            raise SystemExit(f"ad_sim.generate failed for {size}/{split} (exit {code})")
+    return folder
+
+
+def _stage_args(args, **kw) -> Namespace:
+    common = dict(cache=args.cache, size=args.size, lr=1e-4, min_lr=1e-6, weight_decay=1e-4,
+                  val_fraction=args.val_fraction, seed=args.seed, device=args.device, threads=args.threads,
+                  no_progress=args.no_progress)
+    common.update(kw)
+    return Namespace(**common)
+
+
+def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="python -m training pipeline")
+    p.description = ("Bags (generated if missing) -> teacher -> students -> ONNX -> evaluation. "
+                     "Re-running resumes every stage.")
+    p.add_argument("--size", choices=sorted(EPOCHS), default="small", help="benchmark and model size")
+    p.add_argument("--data", default="bags", help="bag root: uses/generates <data>/<size>/{train,seen,unseen}")
+    p.add_argument("--out", help="run folder (default runs/<size>)")
+    p.add_argument("--cache", default=".cache/training", help="array cache folder")
+    p.add_argument("--kind", choices=["streaming", "uniformer"], default="streaming", help="student encoder")
+    p.add_argument("--ablations", default="full",
+                   help=f"comma-separated student ablations to train, from {','.join(ABLATIONS)}")
+    p.add_argument("--teacher-epochs", type=int, help="default per size: " + str({k: v[0] for k, v in EPOCHS.items()}))
+    p.add_argument("--student-epochs", type=int, help="default per size: " + str({k: v[1] for k, v in EPOCHS.items()}))
+    p.add_argument("--val-fraction", type=float, default=0.1)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    p.add_argument("--install", help="copy the `full` student (or the last trained) here as <dir>/default.onnx "
+                                     "(+ default.frame.onnx, default.metrics.json)")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def run(args) -> dict:
+    started = time.time()
+    out = Path(args.out or f"runs/{args.size}")
+    ablations = [a.strip() for a in args.ablations.split(",") if a.strip()]
+    if unknown := [a for a in ablations if a not in ABLATIONS]:
+        raise SystemExit(f"unknown ablation(s) {unknown}; choose from {ABLATIONS}")
+    teacher_epochs = args.teacher_epochs or EPOCHS[args.size][0]
+    student_epochs = args.student_epochs or EPOCHS[args.size][1]
+    teacher_batch, student_batch = BATCH[args.size]
+    bags = {s: ensure_bags(Path(args.data), args.size, s, args.seed, args.device) for s in SPLITS}
+    timings = {"generate_s": time.time() - started}
+
+    t = time.time()
+    teacher = train_teacher.run(_stage_args(args, bags=bags["train"], out=out / "teacher", epochs=teacher_epochs,
+                                            batch_size=teacher_batch))
+    timings["teacher_s"] = time.time() - t
+
+    summary = {"size": args.size, "seed": args.seed, "teacher": str(teacher), "students": {}}
+    installed = None
+    for ablation in ablations:
+        name = f"{args.kind}_{ablation}"
+        t = time.time()
+        best = train_student.run(_stage_args(
+            args, bags=bags["train"], out=out / name, epochs=student_epochs, batch_size=student_batch,
+            teacher=str(teacher), kind=args.kind, ablation=ablation, alpha=0.5, full_clips=False))
+        timings[f"{name}_s"] = time.time() - t
+        onnx_path = out / "models" / f"{name}.onnx"
+        paths = export.export_student(best, onnx_path)
+        error = export.verify_export(best, onnx_path)
+        results = {}
+        for split in ("seen", "unseen"):
+            res = evaluate.evaluate_model(onnx_path, bags[split], args.cache, out / "reports" / f"{name}_{split}",
+                                          title=f"{name} on {args.size}/{split}", progress=not args.no_progress)
+            results[split] = evaluate.summary(res)
+        history = json.loads((out / name / "history.json").read_text())
+        metrics = {"model": onnx_path.name, "kind": args.kind, "ablation": ablation, "size": args.size,
+                   "seed": args.seed, "frame_count": FRAME_COUNT, "onnx_max_abs_error": error,
+                   "final_epoch": history[-1], "evaluation": results}
+        metrics_path = onnx_path.with_name(f"{name}.metrics.json")
+        metrics_path.write_text(json.dumps(metrics, indent=2))
+        summary["students"][ablation] = {"onnx": [str(p) for p in paths], "metrics": str(metrics_path),
+                                         "unseen_regl1": results["unseen"]["full"]["regl1"],
+                                         "unseen_accuracy": results["unseen"]["full"]["accuracy"],
+                                         "seen_regl1": results["seen"]["full"]["regl1"],
+                                         "seen_accuracy": results["seen"]["full"]["accuracy"]}
+        if installed is None or ablation == "full":
+            installed = (onnx_path, metrics_path)
+    timings["total_s"] = time.time() - started
+    summary["timings"] = timings
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    if args.install and installed:
+        install(installed[0], installed[1], Path(args.install))
+    print(json.dumps(summary, indent=2))
+    return summary
+
+
+def install(onnx_path: Path, metrics_path: Path, folder: Path, name: str = "default") -> None:
+    """Copies an exported student as <folder>/<name>.onnx (+ .frame.onnx, .metrics.json), fixing
+    the frame-encoder file name in the head's metadata."""
+    import onnx
+
+    folder.mkdir(parents=True, exist_ok=True)
+    frame = onnx_path.with_name(onnx_path.stem + ".frame.onnx")
+    target = folder / f"{name}.onnx"
+    if frame.exists():
+        shutil.copyfile(frame, folder / f"{name}.frame.onnx")
+        model = onnx.load(str(onnx_path))
+        for prop in model.metadata_props:
+            if prop.key == "ad.frame_encoder":
+                prop.value = f"{name}.frame.onnx"
+        onnx.save(model, str(target))
+        frame_model = onnx.load(str(folder / f"{name}.frame.onnx"))
+        for prop in frame_model.metadata_props:
+            if prop.key == "ad.frame_encoder":
+                prop.value = f"{name}.frame.onnx"
+        onnx.save(frame_model, str(folder / f"{name}.frame.onnx"))
+    else:
+        shutil.copyfile(onnx_path, target)
+    shutil.copyfile(metrics_path, folder / f"{name}.metrics.json")
+    print(f"installed {target}")

@@ -1,0 +1,135 @@
+"""Stage II: distil the frozen teacher into a video student (streaming or UniFormer-style)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset as TorchDataset
+
+from training import data
+from training.engine import BEST, fit, init_runtime, load_checkpoint, seed_everything
+from training.models.common import align_loss, masked_regl1, uncertainty_nll
+from training.models.student import FRAME_COUNT, StudentConfig, build_student, student_preset
+from training.models.teacher import TEACHER_PRESETS
+from training.train_teacher import add_common_args, fit_config, load_teacher, teacher_targets
+
+ABLATIONS = ("none", "align_only", "full")
+# SPEC 9: 0.1 align + 1.0 CE + 0.2 RegL1 (+ a small weight on the uncertainty head's NLL).
+ALIGN_WEIGHT, CE_WEIGHT, REGL1_WEIGHT, NLL_WEIGHT = 0.1, 1.0, 0.2, 0.05
+MIN_PREFIX = 10  # the streaming student sees random prefixes of 10..25 frames: estimates are anytime
+
+
+class VideoSet(TorchDataset):
+    """Mask videos (one item per instance view) with labels and the teacher target of the
+    video's instance (shared by all its views)."""
+
+    def __init__(self, ds: data.Dataset, videos: np.ndarray, frames: list[np.ndarray], targets: np.ndarray | None,
+                 random_prefix: bool, augment: bool, seed: int):
+        self.ds, self.videos, self.frames, self.targets = ds, videos, frames, targets
+        self.random_prefix, self.augment, self.seed, self.epoch = random_prefix, augment, seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.videos)
+
+    def __getitem__(self, k: int) -> dict:
+        j = int(self.videos[k])
+        s, r = self.ds.video_loc[j]
+        i = int(self.ds.video_instance[j])
+        masks = np.array(self.frames[s][r], dtype=np.float32)
+        rng = np.random.default_rng([self.seed, self.epoch, j])
+        length = int(rng.integers(MIN_PREFIX, FRAME_COUNT + 1)) if self.random_prefix else FRAME_COUNT
+        valid = (np.arange(FRAME_COUNT) < length).astype(np.float32)
+        masks[length:] = 0.0
+        if self.augment and rng.random() < 0.5:  # mirror world = mirrored image
+            masks = masks[:, :, ::-1].copy()
+        item = {"masks": torch.from_numpy(masks), "valid": torch.from_numpy(valid),
+                "label": torch.tensor(self.ds.labels[i]), "target": torch.from_numpy(self.ds.params_norm[i]),
+                "mask": torch.from_numpy(self.ds.param_mask[i])}
+        if self.targets is not None:
+            item["z_t"] = torch.from_numpy(self.targets[i])
+        return item
+
+
+def student_loss(ablation: str, alpha: float):
+    if ablation not in ABLATIONS:
+        raise ValueError(f"unknown ablation {ablation!r}; expected one of {ABLATIONS}")
+
+    def loss_fn(model, batch, train: bool):
+        out = model(batch["masks"], batch["valid"])
+        ce = torch.nn.functional.cross_entropy(out["logits"], batch["label"])
+        reg = masked_regl1(out["params"], batch["target"], batch["mask"])
+        nll = uncertainty_nll(out, batch["target"], batch["mask"])
+        logs = {"ce": ce.detach(), "regl1": reg.detach(), "score": (ce + reg).detach(),
+                "acc": (out["logits"].argmax(-1) == batch["label"]).float().mean()}
+        if ablation == "none":
+            return CE_WEIGHT * ce + REGL1_WEIGHT * reg + NLL_WEIGHT * nll, logs
+        align = align_loss(out["z"], batch["z_t"], alpha)
+        logs["align"] = align.detach()
+        if ablation == "align_only":  # predictions come from the teacher's frozen predictor
+            return align, logs
+        return ALIGN_WEIGHT * align + CE_WEIGHT * ce + REGL1_WEIGHT * reg + NLL_WEIGHT * nll, logs
+
+    return loss_fn
+
+
+def load_student(path: str | Path, device="cpu") -> tuple[torch.nn.Module, dict]:
+    state = load_checkpoint(path, device)
+    config = StudentConfig.from_dict(state["meta"]["config"])
+    model = build_student(config)
+    model.load_state_dict(state["model"])
+    return model.to(device).eval(), state["meta"]
+
+
+def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="python -m training student")
+    p.description = ("Stage II: train a video student on the bags' mask videos, aligned with the frozen "
+                     "teacher (loss 0.1 align + 1.0 CE + 0.2 RegL1). Writes <out>/last.pt and <out>/best.pt.")
+    add_common_args(p, epochs=20, batch_size=32, lr=1e-4)
+    p.add_argument("--teacher", help="teacher checkpoint (best.pt of `teacher`); required unless --ablation none")
+    p.add_argument("--kind", choices=["streaming", "uniformer"], default="streaming", help="student encoder")
+    p.add_argument("--ablation", choices=ABLATIONS, default="full",
+                   help="none: task losses only; align_only: alignment only (teacher's predictor); full: both")
+    p.add_argument("--alpha", type=float, default=0.5, help="weight of the L1 term inside the alignment loss")
+    p.add_argument("--full-clips", action="store_true",
+                   help="train on full 25-frame clips only (default: streaming students see random prefixes)")
+    return p
+
+
+def run(args) -> Path:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    seed_everything(args.seed)
+    rt = init_runtime(args.device)
+    if args.ablation != "none" and not args.teacher:
+        raise SystemExit("--teacher is required for --ablation align_only/full (train one with `python -m training "
+                         "teacher`), or use --ablation none")
+    ds = data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress)
+    train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
+
+    teacher = load_teacher(args.teacher, rt.device) if args.teacher else None
+    z_dim = teacher.config.z_dim if teacher else TEACHER_PRESETS[args.size].z_dim
+    config = student_preset(args.kind, args.size, z_dim)
+    targets = teacher_targets(teacher, ds, rt.device) if teacher and args.ablation != "none" else None
+    frames = data.resized_videos(ds, tuple(config.input_size))
+
+    model = build_student(config)
+    if teacher is not None and args.ablation != "none":
+        model.heads.predictor.load_state_dict(teacher.heads.predictor.state_dict())
+        if args.ablation == "align_only":
+            model.heads.predictor.requires_grad_(False)
+    model.to(rt.device)
+    del teacher
+    prefix = config.kind == "streaming" and not args.full_clips
+    train_set = VideoSet(ds, ds.videos_of(train_idx), frames, targets, prefix, True, args.seed)
+    val_set = VideoSet(ds, ds.first_view_videos(val_idx), frames, targets, False, False, args.seed)
+    meta = {"config": config.to_dict(), "size": args.size, "ablation": args.ablation, "kind": config.kind,
+            "teacher": str(args.teacher or ""), "seed": args.seed}
+    out = Path(args.out)
+    fit(model, train_set, val_set, student_loss(args.ablation, args.alpha), out, fit_config(args), rt, meta,
+        desc=f"student[{config.kind},{args.ablation}]")
+    return out / BEST

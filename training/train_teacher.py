@@ -1,0 +1,131 @@
+"""Stage I: train the trajectory teacher on cached bags."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset as TorchDataset
+
+from training import data
+from training.engine import BEST, FitConfig, fit, init_runtime, load_checkpoint, seed_everything
+from training.models.common import task_loss
+from training.models.teacher import TEACHER_PRESETS, Teacher, TeacherConfig
+
+
+def _square_symmetries() -> np.ndarray:
+    """The 8 symmetries of the domain's square footprint (rotations by 90 deg about z, mirrors);
+    gravity and the walls are invariant under them, so they are exact augmentations."""
+    out = []
+    for k in range(4):
+        c, s = [1, 0, -1, 0][k], [0, 1, 0, -1][k]
+        r = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float32)
+        out += [r, r @ np.diag([-1.0, 1.0, 1.0]).astype(np.float32)]
+    return np.stack(out)
+
+
+SYMMETRIES = _square_symmetries()
+
+
+def transform_trajectory(traj: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Applies an orthogonal map r about the domain centre: x -> r (x - c) + c, dx -> r dx, F -> r F r^T."""
+    out = np.empty_like(traj)
+    centre = np.array([0.5, 0.5, 0.0], dtype=np.float32)
+    out[..., :3] = (traj[..., :3] - centre) @ r.T + centre
+    out[..., 3:6] = traj[..., 3:6] @ r.T
+    f = traj[..., 6:].reshape(*traj.shape[:-1], 3, 3)
+    out[..., 6:] = (r @ f @ r.T).reshape(*traj.shape[:-1], 9)
+    return out
+
+
+class TrajectorySet(TorchDataset):
+    def __init__(self, ds: data.Dataset, instances: np.ndarray, augment: bool, seed: int):
+        self.ds, self.instances, self.augment, self.seed, self.epoch = ds, instances, augment, seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.instances)
+
+    def __getitem__(self, k: int) -> dict:
+        i = int(self.instances[k])
+        traj = self.ds.trajectory(i)
+        if self.augment:
+            sym = np.random.default_rng([self.seed, self.epoch, i]).integers(len(SYMMETRIES))
+            traj = transform_trajectory(traj, SYMMETRIES[sym])
+        return {"trajectory": torch.from_numpy(traj), "label": torch.tensor(self.ds.labels[i]),
+                "target": torch.from_numpy(self.ds.params_norm[i]), "mask": torch.from_numpy(self.ds.param_mask[i])}
+
+
+def teacher_loss(model, batch, train: bool):
+    out = model(batch["trajectory"])
+    loss, logs = task_loss(out, batch["label"], batch["target"], batch["mask"])
+    logs["acc"] = (out["logits"].argmax(-1) == batch["label"]).float().mean()
+    logs["score"] = logs["ce"] + logs["regl1"]
+    return loss, logs
+
+
+def load_teacher(path: str | Path, device="cpu") -> Teacher:
+    state = load_checkpoint(path, device)
+    teacher = Teacher(TeacherConfig(**state["meta"]["config"]))
+    teacher.load_state_dict(state["model"])
+    return teacher.to(device).eval()
+
+
+@torch.no_grad()
+def teacher_targets(teacher: Teacher, ds: data.Dataset, device, batch_size: int = 16) -> np.ndarray:
+    """z_T of every instance (frozen teacher, eval mode, no augmentation): (N, z_dim) float32."""
+    out = []
+    for start in range(0, len(ds), batch_size):
+        idx = range(start, min(len(ds), start + batch_size))
+        x = torch.from_numpy(np.stack([ds.trajectory(i) for i in idx])).to(device)
+        out.append(teacher(x)["z"].float().cpu().numpy())
+    return np.concatenate(out) if out else np.zeros((0, teacher.config.z_dim), np.float32)
+
+
+def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr: float = 1e-4) -> None:
+    p.add_argument("--bags", required=True, help="folder of training .mcap bags (searched recursively)")
+    p.add_argument("--cache", default=".cache/training", help="array cache folder (keyed by bag content)")
+    p.add_argument("--out", required=True, help="run folder: checkpoints, history; an existing one is resumed")
+    p.add_argument("--size", choices=["tiny", "small", "paper"], default="small", help="model size preset")
+    p.add_argument("--epochs", type=int, default=epochs, help=f"epochs (default {epochs}; paper values in SPEC 9)")
+    p.add_argument("--batch-size", type=int, default=batch_size, help="per-process batch size")
+    p.add_argument("--lr", type=float, default=lr, help="AdamW peak learning rate (cosine to --min-lr)")
+    p.add_argument("--min-lr", type=float, default=1e-6)
+    p.add_argument("--weight-decay", type=float, default=1e-4)
+    p.add_argument("--val-fraction", type=float, default=0.1, help="instances held out for validation")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda (torchrun: one process per GPU)")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch default)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def fit_config(args) -> FitConfig:
+    return FitConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, weight_decay=args.weight_decay,
+                     min_lr=args.min_lr, seed=args.seed, progress=not args.no_progress)
+
+
+def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="python -m training teacher")
+    p.description = ("Stage I: train the P4Transformer-style trajectory teacher (CE + masked RegL1) on the "
+                     "tracked particles of MCAP bags. Writes <out>/last.pt (resume) and <out>/best.pt.")
+    add_common_args(p, epochs=300, batch_size=32, lr=1e-4)
+    return p
+
+
+def run(args) -> Path:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    seed_everything(args.seed)
+    rt = init_runtime(args.device)
+    ds = data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress)
+    train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
+    config = TEACHER_PRESETS[args.size]
+    model = Teacher(config).to(rt.device)
+    out = Path(args.out)
+    fit(model, TrajectorySet(ds, train_idx, True, args.seed), TrajectorySet(ds, val_idx, False, args.seed),
+        teacher_loss, out, fit_config(args), rt, meta={"config": config.to_dict(), "size": args.size},
+        desc="teacher")
+    return out / BEST
