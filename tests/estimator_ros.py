@@ -16,13 +16,16 @@ from sensor_msgs.msg import Image
 from ad_estimator.window import ns_to_stamp
 
 
+def random_domain() -> int:
+    return random.Random(os.getpid() ^ time.time_ns()).randrange(1, 200)
+
+
 @contextmanager
-def ros_context():
+def ros_context(domain: int | None = None):
     """rclpy context on a random domain (parallel test runs on this machine do not see each other)
     and an executor spinning in a background thread, as in a running system."""
     context = Context()
-    domain = random.Random(os.getpid() ^ time.time_ns()).randrange(1, 200)
-    rclpy.init(context=context, domain_id=domain)
+    rclpy.init(context=context, domain_id=random_domain() if domain is None else domain)
     executor = MultiThreadedExecutor(num_threads=3, context=context)
     spinner = threading.Thread(target=_spin, args=(executor, context), daemon=True)
     spinner.start()

@@ -1,0 +1,141 @@
+"""replay (bag -> topics with recorded timing and QoS) and the live path against the offline path."""
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ad_msgs.msg import MaterialEstimate, SimInstance
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image
+
+from ad_estimator import evaluate
+from ad_estimator.model import BUNDLED_MODEL
+from ad_sim.rosbag import BagReader
+from estimator_bags import write_test_bag
+from estimator_models import build_streaming_model
+from estimator_ros import random_domain, ros_context, wait_for
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLES = REPO / "bags" / "samples"
+MASK_TOPIC = "/ad_sim/view_0/mask"
+INSTANCE_TOPIC = "/ad_sim/instance"
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def run(module, *args, domain, **kwargs):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+    return subprocess.Popen([sys.executable, "-m", module, *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, **kwargs)
+
+
+def stamp_ns(stamp):
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+@pytest.fixture(scope="module")
+def test_bag(tmp_path_factory):
+    return write_test_bag(tmp_path_factory.mktemp("bags") / "three_episodes")
+
+
+def test_replay_keeps_bytes_timing_and_qos(test_bag):
+    domain = random_domain()
+    with ros_context(domain) as (context, executor):
+        node = Node("replay_listener", context=context)
+        frames, instances = [], []
+        node.create_subscription(Image, MASK_TOPIC, lambda m: frames.append((time.monotonic(), m)), RELIABLE)
+        node.create_subscription(SimInstance, INSTANCE_TOPIC, instances.append, LATCHED)
+        executor.add_node(node)
+        proc = run("ad_estimator.replay", str(test_bag), "--rate", "2", "--quiet", "--wait-for", MASK_TOPIC,
+                   domain=domain)
+        assert wait_for(lambda: len(frames) > 0, timeout=30)
+        info = node.get_publishers_info_by_topic(INSTANCE_TOPIC)  # as recorded: ground truth is latched
+        assert info and info[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        assert node.get_publishers_info_by_topic(MASK_TOPIC)[0].qos_profile.durability == DurabilityPolicy.VOLATILE
+        assert wait_for(lambda: len(frames) == 75, timeout=30), proc.communicate(timeout=10)[0]
+        out, _ = proc.communicate(timeout=20)
+        assert proc.returncode == 0 and "published 78 messages" in out, out
+
+    recorded = [(s, m) for t, s, m in BagReader(test_bag) if t == MASK_TOPIC]
+    for (_, got), (stamp, want) in zip(frames, recorded):
+        assert stamp_ns(got.header.stamp) == stamp and bytes(got.data) == want.data
+    assert [i.episode_id for i in instances] == [f"test-disc-{m}-{k:04d}" for k, m in
+                                                 enumerate(["jelly", "plasticine", "sand"])]
+    # episodes start 1.5 s apart in the bag: 0.75 s apart at rate 2
+    starts = [frames[25 * k][0] for k in range(3)]
+    assert np.allclose(np.diff(starts), 0.75, atol=0.15), np.diff(starts)
+
+
+@pytest.mark.parametrize("content", [b"\x89MCAP0\r\n" + b"\x01" * 64, b"garbage"])
+def test_replay_corrupt_bag_is_a_clear_error(tmp_path, content):
+    bag = tmp_path / "bad"
+    bag.mkdir()
+    (bag / "bad_0.mcap").write_bytes(content)
+    proc = run("ad_estimator.replay", str(bag), "--quiet", "--delay", "0", domain=random_domain())
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and "bad_0.mcap" in out and "Traceback" not in out, out
+
+
+def test_replay_missing_bag(tmp_path):
+    proc = run("ad_estimator.replay", str(tmp_path / "nothing"), domain=random_domain())
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and "does not exist" in out
+
+
+def live_and_offline_inputs(tmp_path):
+    """The committed sample bags and the bundled model when they exist, else a written bag and test model."""
+    bags = sorted(p.parent for p in SAMPLES.glob("*/metadata.yaml"))
+    if not bags:
+        bags = [write_test_bag(tmp_path / "bag")]
+    model = BUNDLED_MODEL if BUNDLED_MODEL.is_file() else build_streaming_model(tmp_path)
+    return bags, model
+
+
+def test_live_path_equals_offline_path(tmp_path):
+    """replay -> node -> estimates (with SimInstance ground truth) == evaluate on the same bags."""
+    bags, model = live_and_offline_inputs(tmp_path)
+    assert evaluate.main(["--model", str(model), "--bags", *map(str, bags), "--out", str(tmp_path / "report"),
+                          "--quiet"]) == 0
+    offline = json.loads((tmp_path / "report" / "predictions.json").read_text())["frames"]["25"]
+    assert offline
+
+    domain = random_domain()
+    with ros_context(domain) as (context, executor):
+        listener = Node("live_listener", context=context)
+        estimates, instances = [], {}
+        listener.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append, RELIABLE)
+        listener.create_subscription(SimInstance, INSTANCE_TOPIC,
+                                     lambda m: instances.setdefault(stamp_ns(m.header.stamp), m), LATCHED)
+        executor.add_node(listener)
+        estimator = run("ad_estimator.node", "--ros-args", "-p", f"model_path:={model}", "-p", "reliable:=true",
+                        domain=domain)
+        try:
+            assert wait_for(lambda: listener.count_publishers("/ad_estimator/estimate") > 0, timeout=30)
+            for bag in bags:
+                replay = run("ad_estimator.replay", str(bag), "--rate", "3", "--quiet", "--wait-for", MASK_TOPIC,
+                             domain=domain)
+                out, _ = replay.communicate(timeout=120)
+                assert replay.returncode == 0, out
+            assert wait_for(lambda: len(estimates) >= len(offline), timeout=20), (len(estimates), len(offline))
+            time.sleep(0.5)
+        finally:
+            estimator.terminate()
+            log = estimator.communicate(timeout=20)[0]
+        assert estimator.returncode == 0, log
+
+    assert len(estimates) == len(offline)
+    by_start = {p["oldest_stamp_ns"]: p for p in offline}
+    for live in estimates:
+        expected = by_start[stamp_ns(live.oldest_stamp)]
+        truth = instances[stamp_ns(live.oldest_stamp)]  # ground truth of the episode, stamped at its frame 0
+        assert truth.episode_id == expected["episode_id"] and truth.material == expected["true_material"]
+        assert live.complete and live.frames_used == expected["frames_used"] == 25
+        assert stamp_ns(live.header.stamp) == expected["newest_stamp_ns"]
+        assert live.material == expected["material"]
+        np.testing.assert_allclose(live.class_probabilities, expected["probabilities"], rtol=1e-5)
+        np.testing.assert_allclose(live.parameters, expected["parameters"], rtol=1e-5)
