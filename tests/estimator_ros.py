@@ -17,7 +17,8 @@ from ad_estimator.window import ns_to_stamp
 
 
 def random_domain() -> int:
-    return random.Random(os.getpid() ^ time.time_ns()).randrange(1, 200)
+    """For module-scoped contexts: above conftest's per-test domains (1..100), below Fast DDS's limit."""
+    return random.Random(os.getpid() ^ time.time_ns()).randrange(101, 230)
 
 
 @contextmanager

@@ -1,5 +1,4 @@
 """The estimator node over real DDS (rclpy, in-process executor) with real onnxruntime models."""
-import os
 import signal
 import subprocess
 import sys
@@ -25,6 +24,7 @@ from ad_estimator.window import FrameWindow
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
 from estimator_ros import image_msg, ros_context, wait_for
 
+pytestmark = pytest.mark.ros
 DT = 25_000_000
 TOPIC = "/estimator_test/mask"
 
@@ -36,8 +36,8 @@ def model_paths(tmp_path_factory):
 
 
 @pytest.fixture
-def ros():
-    with ros_context() as (context, executor):
+def ros(ros_domain_id):
+    with ros_context(ros_domain_id) as (context, executor):
         yield context, executor
 
 
@@ -286,9 +286,8 @@ def test_missing_or_corrupt_model_fails_at_start_naming_the_file(tmp_path, conte
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_clean_shutdown_on_signals(model_paths, sig):
-    proc = run_node("-p", f"model_path:={model_paths['streaming']}", "-r", "mask:=/estimator_test/signal",
-                    env=dict(os.environ, ROS_DOMAIN_ID=str(200 + sig)))
+def test_clean_shutdown_on_signals(model_paths, sig, ros_domain_id):
+    proc = run_node("-p", f"model_path:={model_paths['streaming']}", "-r", "mask:=/estimator_test/signal")
     lines = []
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:

@@ -1,6 +1,5 @@
 """replay (bag -> topics with recorded timing and QoS) and the live path against the offline path."""
 import json
-import os
 import subprocess
 import sys
 import time
@@ -18,20 +17,21 @@ from ad_estimator.model import BUNDLED_MODEL
 from ad_sim.rosbag import BagReader
 from estimator_bags import write_test_bag
 from estimator_models import build_streaming_model
-from estimator_ros import random_domain, ros_context, wait_for
+from estimator_ros import ros_context, wait_for
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLES = REPO / "bags" / "samples"
 MASK_TOPIC = "/ad_sim/view_0/mask"
 INSTANCE_TOPIC = "/ad_sim/instance"
+pytestmark = pytest.mark.ros
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-def run(module, *args, domain, **kwargs):
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
-    return subprocess.Popen([sys.executable, "-m", module, *args], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, **kwargs)
+def run(module, *args):
+    """The executable as a process, on this test's ROS_DOMAIN_ID (set by the ros_domain_id fixture)."""
+    return subprocess.Popen([sys.executable, "-m", module, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
 
 
 def stamp_ns(stamp):
@@ -43,16 +43,14 @@ def test_bag(tmp_path_factory):
     return write_test_bag(tmp_path_factory.mktemp("bags") / "three_episodes")
 
 
-def test_replay_keeps_bytes_timing_and_qos(test_bag):
-    domain = random_domain()
-    with ros_context(domain) as (context, executor):
+def test_replay_keeps_bytes_timing_and_qos(test_bag, ros_domain_id):
+    with ros_context(ros_domain_id) as (context, executor):
         node = Node("replay_listener", context=context)
         frames, instances = [], []
         node.create_subscription(Image, MASK_TOPIC, lambda m: frames.append((time.monotonic(), m)), RELIABLE)
         node.create_subscription(SimInstance, INSTANCE_TOPIC, instances.append, LATCHED)
         executor.add_node(node)
-        proc = run("ad_estimator.replay", str(test_bag), "--rate", "2", "--quiet", "--wait-for", MASK_TOPIC,
-                   domain=domain)
+        proc = run("ad_estimator.replay", str(test_bag), "--rate", "2", "--quiet", "--wait-for", MASK_TOPIC)
         assert wait_for(lambda: len(frames) > 0, timeout=30)
         info = node.get_publishers_info_by_topic(INSTANCE_TOPIC)  # as recorded: ground truth is latched
         assert info and info[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
@@ -71,18 +69,18 @@ def test_replay_keeps_bytes_timing_and_qos(test_bag):
     assert np.allclose(np.diff(starts), 0.75, atol=0.15), np.diff(starts)
 
 
-@pytest.mark.parametrize("content", [b"\x89MCAP0\r\n" + b"\x01" * 64, b"garbage"])
-def test_replay_corrupt_bag_is_a_clear_error(tmp_path, content):
+@pytest.mark.parametrize("content", [b"\x89MCAP0\r\n" + b"\x01" * 64, b"garbage"], ids=["bad_records", "not_mcap"])
+def test_replay_corrupt_bag_is_a_clear_error(tmp_path, content, ros_domain_id):
     bag = tmp_path / "bad"
     bag.mkdir()
     (bag / "bad_0.mcap").write_bytes(content)
-    proc = run("ad_estimator.replay", str(bag), "--quiet", "--delay", "0", domain=random_domain())
+    proc = run("ad_estimator.replay", str(bag), "--quiet", "--delay", "0")
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 1 and "bad_0.mcap" in out and "Traceback" not in out, out
 
 
-def test_replay_missing_bag(tmp_path):
-    proc = run("ad_estimator.replay", str(tmp_path / "nothing"), domain=random_domain())
+def test_replay_missing_bag(tmp_path, ros_domain_id):
+    proc = run("ad_estimator.replay", str(tmp_path / "nothing"))
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 1 and "does not exist" in out
 
@@ -96,7 +94,7 @@ def live_and_offline_inputs(tmp_path):
     return bags, model
 
 
-def test_live_path_equals_offline_path(tmp_path):
+def test_live_path_equals_offline_path(tmp_path, ros_domain_id):
     """replay -> node -> estimates (with SimInstance ground truth) == evaluate on the same bags."""
     bags, model = live_and_offline_inputs(tmp_path)
     assert evaluate.main(["--model", str(model), "--bags", *map(str, bags), "--out", str(tmp_path / "report"),
@@ -104,21 +102,18 @@ def test_live_path_equals_offline_path(tmp_path):
     offline = json.loads((tmp_path / "report" / "predictions.json").read_text())["frames"]["25"]
     assert offline
 
-    domain = random_domain()
-    with ros_context(domain) as (context, executor):
+    with ros_context(ros_domain_id) as (context, executor):
         listener = Node("live_listener", context=context)
         estimates, instances = [], {}
         listener.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append, RELIABLE)
         listener.create_subscription(SimInstance, INSTANCE_TOPIC,
                                      lambda m: instances.setdefault(stamp_ns(m.header.stamp), m), LATCHED)
         executor.add_node(listener)
-        estimator = run("ad_estimator.node", "--ros-args", "-p", f"model_path:={model}", "-p", "reliable:=true",
-                        domain=domain)
+        estimator = run("ad_estimator.node", "--ros-args", "-p", f"model_path:={model}", "-p", "reliable:=true")
         try:
             assert wait_for(lambda: listener.count_publishers("/ad_estimator/estimate") > 0, timeout=30)
             for bag in bags:
-                replay = run("ad_estimator.replay", str(bag), "--rate", "3", "--quiet", "--wait-for", MASK_TOPIC,
-                             domain=domain)
+                replay = run("ad_estimator.replay", str(bag), "--rate", "3", "--quiet", "--wait-for", MASK_TOPIC)
                 out, _ = replay.communicate(timeout=120)
                 assert replay.returncode == 0, out
             assert wait_for(lambda: len(estimates) >= len(offline), timeout=20), (len(estimates), len(offline))
