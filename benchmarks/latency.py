@@ -1,0 +1,208 @@
+#!/usr/bin/env python3
+"""Estimator latency: frame arrival -> estimate published (p50/p95/p99) and model time.
+
+ROS mode (default): the estimator node runs in this process exactly as in production (its
+executor thread + inference worker); a separate process publishes 128x128 mono8 masks at the
+simulator's stamps and pace (40 fps x --rate). Latency is the node's own measurement from the
+subscription callback's entry to the return of publish(); the end-to-end figure adds DDS both
+ways (frame publish in the other process -> estimate received here; same host clock).
+
+--no-ros: only image conversion + window + model, in a loop (for machines without ROS, e.g. the
+GPU machine: PYTHONPATH=ros_ws/src/ad_estimator:ros_ws/src/ad_sim python benchmarks/latency.py --no-ros).
+
+Policy 'anytime' with every_n=1 (default) times an estimate at every frame (one frame encoding +
+the temporal head, the streaming student's steady state); 'episode' times the 25th frame only.
+
+Run: source env.sh && python benchmarks/latency.py [--model M] [--episodes 20]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_ws" / "src" / "ad_sim")]
+
+from ad_estimator.images import image_to_mask  # noqa: E402
+from ad_estimator.model import BUNDLED_MODEL, EstimatorModel  # noqa: E402
+from ad_estimator.window import FrameWindow  # noqa: E402
+
+TOPIC = "/latency_benchmark/mask"
+FRAME_NS = 25_000_000
+EPISODE_NS = 1_500_000_000
+
+
+def episode_masks(bag: Path | None, count: int) -> list[np.ndarray]:
+    """Mask clips (25, H, W) uint8: from a bag's first camera if given, else a synthetic falling disc."""
+    if bag is not None:
+        from ad_estimator.evaluate import MAX_IMAGE_PIXELS, episode_frames
+        clips = [np.stack([image_to_mask(m, MAX_IMAGE_PIXELS) for _, m in frames])
+                 for _, frames in episode_frames(bag)]
+    else:
+        size = 128
+        yy, xx = np.mgrid[0:size, 0:size]
+        clips = []
+        for e in range(4):
+            clip = np.zeros((25, size, size), np.uint8)
+            for t in range(25):
+                cy = min(25 + 0.5 * 9.8 * (t * 0.025) ** 2 * size * 3, size - 22)
+                clip[t][((xx - 50 - 8 * e) / 20.0) ** 2 + ((yy - cy) / (20.0 - 0.2 * t)) ** 2 <= 1] = 255
+            clips.append(clip)
+    return [clips[i % len(clips)] for i in range(count)]
+
+
+def percentiles(values) -> dict:
+    a = np.asarray(values, float) * 1e3
+    if not len(a):
+        return {"n": 0}
+    return {"n": int(len(a)), "p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)),
+            "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "max_ms": float(a.max())}
+
+
+class FakeImage:
+    """What the window/conversion code reads from a sensor_msgs/Image, without ROS."""
+
+    def __init__(self, mask: np.ndarray):
+        self.height, self.width = mask.shape
+        self.step, self.encoding, self.is_bigendian = self.width, "mono8", 0
+        self.data = mask.tobytes()
+
+
+def run_no_ros(args) -> dict:
+    model = EstimatorModel.load(args.model, threads=args.threads)
+    latencies, model_times = [], []
+    for clip in episode_masks(args.bag, args.episodes):
+        window = FrameWindow(model.info.frame_interval, model.info.frame_count, policy=args.policy,
+                             every_n=args.every_n, min_frames=args.min_frames)
+        for k, mask in enumerate(clip):
+            image = FakeImage(mask)
+            start = time.perf_counter()
+            binary = image_to_mask(image, 4096 * 4096)
+            for out in window.add(k * FRAME_NS, binary.shape, lambda: model.encode(binary)):
+                model_start = time.perf_counter()
+                model.predict(out.features, out.valid)
+                model_times.append(time.perf_counter() - model_start)
+                latencies.append(time.perf_counter() - start)
+    return {"latency": percentiles(latencies), "temporal_head_or_clip": percentiles(model_times)}
+
+
+def publish_frames(args) -> None:
+    """The other process: publish masks at the simulator's stamps, paced at 40 fps x rate."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    rclpy.init()
+    node = rclpy.create_node("latency_benchmark_camera")
+    publisher = node.create_publisher(Image, TOPIC, QoSProfile(depth=25, reliability=ReliabilityPolicy.RELIABLE))
+    deadline = time.monotonic() + 30
+    while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.5)
+    sent = {}
+    for e, clip in enumerate(episode_masks(args.bag, args.episodes)):
+        start = time.monotonic()
+        for k, mask in enumerate(clip):
+            target = start + k * 0.025 / args.rate
+            time.sleep(max(0.0, target - time.monotonic()))
+            stamp = e * EPISODE_NS + k * FRAME_NS
+            msg = Image(height=mask.shape[0], width=mask.shape[1], encoding="mono8", step=mask.shape[1],
+                        data=mask.tobytes())
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+            msg.header.frame_id = "benchmark"
+            sent[stamp] = time.time()
+            publisher.publish(msg)
+        time.sleep(0.35)  # a gap in wall time too, as between simulator episodes
+    print(json.dumps(sent))
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def run_ros(args) -> dict:
+    import rclpy
+    from ad_msgs.msg import MaterialEstimate
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from ad_estimator.node import EstimatorNode
+
+    rclpy.init()
+    node = EstimatorNode(parameter_overrides=[
+        Parameter("model_path", value=str(args.model)), Parameter("threads", value=args.threads),
+        Parameter("output_policy", value=args.policy), Parameter("every_n", value=args.every_n),
+        Parameter("min_frames", value=args.min_frames), Parameter("queue_size", value=64)],
+        cli_args=["--ros-args", "-r", f"mask:={TOPIC}", "--log-level", "warn"])
+    received = {}
+    listener = rclpy.create_node("latency_benchmark_listener")
+    listener.create_subscription(
+        MaterialEstimate, "/ad_estimator/estimate",
+        lambda m: received.setdefault(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, time.time()),
+        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    executor.add_node(listener)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    command = [sys.executable, __file__, "--publish", "--episodes", str(args.episodes), "--rate", str(args.rate)]
+    if args.bag:
+        command += ["--bag", str(args.bag)]
+    camera = subprocess.run(command, capture_output=True, text=True, env=os.environ, timeout=600)
+    if camera.returncode != 0:
+        raise SystemExit(f"publisher failed:\n{camera.stderr}")
+    time.sleep(0.5)
+    sent = {int(k): v for k, v in json.loads(camera.stdout.strip().splitlines()[-1]).items()}
+    stats = node.statistics()
+    with node._lock:
+        latencies, model_times = list(node.latencies), list(node.model_times)
+    end_to_end = [received[s] - sent[s] for s in received if s in sent]
+    executor.shutdown()
+    node.destroy_node()
+    listener.destroy_node()
+    rclpy.try_shutdown()
+    return {"latency": percentiles(latencies), "model_time": percentiles(model_times),
+            "end_to_end_dds": percentiles(end_to_end),
+            "frames": {k: stats[k] for k in ("received", "dropped", "rejected", "published")}}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     epilog="Target: p50 < 3.83 ms on a 2-core CPU with the streaming student.")
+    parser.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: bundled)")
+    parser.add_argument("--bag", type=Path, default=None, help="take masks from this bag (default: synthetic)")
+    parser.add_argument("--episodes", type=int, default=20, help="episodes of 25 frames")
+    parser.add_argument("--policy", choices=["anytime", "episode"], default="anytime")
+    parser.add_argument("--every-n", type=int, default=1)
+    parser.add_argument("--min-frames", type=int, default=1)
+    parser.add_argument("--rate", type=float, default=1.0, help="publishing speed factor (ROS mode)")
+    parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
+    parser.add_argument("--no-ros", action="store_true", help="time conversion + window + model only")
+    parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    parser.add_argument("--publish", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.publish:
+        publish_frames(args)
+        return 0
+    model = EstimatorModel.load(args.model, threads=args.threads)
+    result = run_no_ros(args) if args.no_ros else run_ros(args)
+    result["setup"] = {"model": str(args.model), "model_id": model.model_id, "kind": model.info.kind,
+                       "mode": "no-ros" if args.no_ros else "ros", "policy": args.policy, "every_n": args.every_n,
+                       "episodes": args.episodes, "threads": args.threads, "cpu": platform.processor() or
+                       platform.machine(), "cpu_count": os.cpu_count()}
+    print(json.dumps(result, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
