@@ -181,6 +181,14 @@ def compose(U: wp.mat33, sigma: wp.vec3, V: wp.mat33):
 
 
 @wp.func
+def projected(F: wp.mat33, U: wp.mat33, sigma: wp.vec3, sigma_new: wp.vec3, V: wp.mat33):
+    """F after a projection that changed sigma to sigma_new; F itself (no SVD round-off) if unchanged."""
+    if sigma_new[0] == sigma[0] and sigma_new[1] == sigma[1] and sigma_new[2] == sigma[2]:
+        return F
+    return compose(U, sigma_new, V)
+
+
+@wp.func
 def log_sigma(sigma: wp.vec3):
     return wp.vec3(wp.log(sigma[0]), wp.log(sigma[1]), wp.log(sigma[2]))
 
@@ -289,13 +297,13 @@ def identity_projection(F: wp.mat33):
 @wp.func
 def von_mises_projection(F: wp.mat33, mu: float, yield_stress: float):
     U, sigma, V = svd(F)
-    return compose(U, von_mises_projection_sigma(sigma, mu, yield_stress), V)
+    return projected(F, U, sigma, von_mises_projection_sigma(sigma, mu, yield_stress), V)
 
 
 @wp.func
 def drucker_prager_projection(F: wp.mat33, mu: float, lam: float, alpha: float):
     U, sigma, V = svd(F)
-    return compose(U, drucker_prager_projection_sigma(sigma, mu, lam, alpha), V)
+    return projected(F, U, sigma, drucker_prager_projection_sigma(sigma, mu, lam, alpha), V)
 
 
 @wp.func
