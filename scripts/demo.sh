@@ -1,5 +1,12 @@
 #!/usr/bin/env bash
-# Placeholder so that run_demo.sh works end to end; the estimator engineer replaces it with the
-# demo (ad_sim node feeding ad_estimator node with the bundled model).
-echo "scripts/demo.sh: not implemented yet" >&2
-exit 1
+# The README's main job: set up (idempotent, quick when nothing changed), then the simulator feeding
+# the estimator with the bundled model on unseen shapes, each estimate printed beside its ground
+# truth (scripts/demo.py; arguments go there, e.g. --episodes 3 or --help).
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+./setup.sh
+set +u  # the venv's and colcon's setup scripts read unset variables
+. ./env.sh
+set -u
+exec python scripts/demo.py "$@"

@@ -1,0 +1,206 @@
+#!/usr/bin/env python3
+"""The main job: the simulator feeds the estimator (bundled model) on unseen shapes; each estimate
+is printed beside the episode's ground truth.
+
+Starts `ad_estimator node` and then `ad_sim node` (scripts/adrun, i.e. what `ros2 run` runs), listens
+to /ad_estimator/estimate and /ad_sim/instance, matches each estimate to its episode by the stamp
+of the episode's first frame, prints a line per episode and a summary, and exits after --episodes
+episodes. Run it through scripts/demo.sh (set-up included) or, in a sourced environment, directly.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+ADRUN = ROOT / "scripts" / "adrun"
+SHORT = {"youngs_modulus": ("E", "Pa"), "poissons_ratio": ("nu", ""), "yield_stress": ("yield", "Pa"),
+         "friction_angle": ("phi", "deg")}
+
+
+def fmt(name: str, value: float, sigma: float | None = None) -> str:
+    label, unit = SHORT.get(name, (name, ""))
+    if unit == "deg":
+        value, sigma = math.degrees(value), (None if sigma is None else math.degrees(sigma))
+    text = f"{label}={value:.3g}"
+    if sigma is not None and math.isfinite(sigma) and sigma > 0:
+        text += f"±{sigma:.2g}"
+    return text + (f" {unit}" if unit else "")
+
+
+def truth_text(instance) -> str:
+    return f"{instance.material:10s} " + " ".join(
+        fmt(n, v) for n, v in zip(instance.parameter_names, instance.parameters))
+
+
+def estimate_text(estimate, truth_names) -> str:
+    probability = dict(zip(estimate.class_names, estimate.class_probabilities))[estimate.material]
+    values = {n: (v, s) for n, v, s in zip(estimate.parameter_names, estimate.parameters,
+                                             estimate.parameter_uncertainties) if not math.isnan(v)}
+    # the family's own parameters, in ground truth order where they match it
+    order = [n for n in truth_names if n in values] + [n for n in values if n not in truth_names]
+    return f"{estimate.material:10s} (p={probability:.2f}) " + " ".join(fmt(n, *values[n]) for n in order)
+
+
+def stamp_ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+class Listener:
+    """Collects ground truth and estimates; pairs them by the stamp of the episode's first frame."""
+
+    def __init__(self, node):
+        from ad_msgs.msg import MaterialEstimate, SimInstance
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+        self.instances, self.pending, self.rows = {}, [], []
+        self.lock = threading.Lock()
+        node.create_subscription(SimInstance, "/ad_sim/instance", self.on_instance,
+                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                                            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        node.create_subscription(MaterialEstimate, "/ad_estimator/estimate", self.on_estimate,
+                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+
+    def on_instance(self, msg):
+        with self.lock:
+            self.instances[stamp_ns(msg.header.stamp)] = msg
+            self._pair()
+
+    def on_estimate(self, msg):
+        with self.lock:
+            self.pending.append(msg)
+            self._pair()
+
+    def _pair(self):
+        for estimate in list(self.pending):
+            instance = self.instances.get(stamp_ns(estimate.oldest_stamp))
+            if instance is not None:
+                self.pending.remove(estimate)
+                self.rows.append((instance, estimate))
+                print(f"{instance.episode_id:34s} {instance.shape:14s} | {truth_text(instance):48s} | "
+                      f"{estimate_text(estimate, list(instance.parameter_names))}  "
+                      f"[{estimate.frames_used} frames, {estimate.inference_time * 1e3:.2f} ms]", flush=True)
+
+
+def summary(rows) -> str:
+    if not rows:
+        return "no estimates"
+    correct = sum(i.material == e.material for i, e in rows)
+    errors = {}
+    for instance, estimate in rows:
+        if instance.material != estimate.material:
+            continue
+        predicted = dict(zip(estimate.parameter_names, estimate.parameters))
+        for name, true in zip(instance.parameter_names, instance.parameters):
+            value = predicted.get(name, math.nan)
+            if name in ("youngs_modulus", "yield_stress"):
+                error = abs(math.log(value) - math.log(true))
+            elif name == "friction_angle":
+                error = abs(math.degrees(value - true))
+            else:
+                error = abs(value - true)
+            if math.isfinite(error) and error > 0:  # fixed parameters (sand's E, nu) are exact by construction
+                errors.setdefault(name, []).append(error)
+    kinds = {"youngs_modulus": "log-MAE", "yield_stress": "log-MAE", "friction_angle": "MAE deg",
+             "poissons_ratio": "MAE"}
+    parts = [f"{SHORT[n][0]} {kinds[n]} {sum(v) / len(v):.3f}" for n, v in errors.items()]
+    return f"accuracy {correct}/{len(rows)}; over correctly classified: " + (", ".join(parts) or "-")
+
+
+def start(*command: str, log_path: Path) -> subprocess.Popen:
+    log = open(log_path, "w")
+    return subprocess.Popen([str(ADRUN), *command], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--episodes", type=int, default=6, help="stop after this many estimates (tiny unseen has 6)")
+    parser.add_argument("--size", default="tiny", choices=["tiny", "small", "paper"], help="benchmark size")
+    parser.add_argument("--split", default="unseen", choices=["train", "seen", "unseen"])
+    parser.add_argument("--real-time-factor", type=float, default=1.0, help="simulator pacing (0 = fast)")
+    parser.add_argument("--model", default="", help="ONNX model for the estimator (default: bundled)")
+    parser.add_argument("--timeout", type=float, default=900.0, help="give up after this many seconds")
+    parser.add_argument("--logs", type=Path, default=ROOT / "reports" / "demo", help="node logs go here")
+    args = parser.parse_args(argv)
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randrange(1, 100)))
+    args.logs.mkdir(parents=True, exist_ok=True)
+    rclpy.init()
+    node = rclpy.create_node("ad_demo")
+    listener = Listener(node)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+
+    model_args = ["--ros-args", "-p", f"model_path:={args.model}"] if args.model else []
+    estimator = start("ad_estimator", "node", *model_args, log_path=args.logs / "estimator.log")
+    simulator = None
+    deadline = time.monotonic() + args.timeout
+    status = 0
+    try:
+        while node.count_publishers("/ad_estimator/estimate") == 0:
+            if estimator.poll() is not None:
+                raise RuntimeError(f"the estimator exited ({estimator.returncode}):\n"
+                                   + (args.logs / "estimator.log").read_text())
+            if time.monotonic() > deadline:
+                raise RuntimeError("the estimator did not come up")
+            time.sleep(0.1)
+        print(f"estimator up; starting the simulator ({args.size}/{args.split}, real_time_factor "
+              f"{args.real_time_factor}); logs in {args.logs}", flush=True)
+        simulator = start("ad_sim", "node", "--ros-args", "-p", f"size:={args.size}", "-p", f"split:={args.split}",
+                          "-p", f"real_time_factor:={args.real_time_factor}", log_path=args.logs / "simulator.log")
+        print(f"{'episode':34s} {'shape':14s} | {'ground truth':48s} | estimate", flush=True)
+        while len(listener.rows) < args.episodes:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"timed out after {args.timeout:.0f} s with {len(listener.rows)} estimates")
+            if simulator.poll() is not None:
+                time.sleep(2.0)  # the last estimate may still be on its way
+                if len(listener.rows) < args.episodes:
+                    print(f"the simulator finished ({simulator.returncode}) after {len(listener.rows)} episodes; "
+                          f"see {args.logs / 'simulator.log'}", flush=True)
+                break
+            if estimator.poll() is not None:
+                raise RuntimeError(f"the estimator exited ({estimator.returncode}); see {args.logs / 'estimator.log'}")
+            time.sleep(0.1)
+        print(summary(listener.rows), flush=True)
+        status = 0 if listener.rows else 1
+    except RuntimeError as exc:
+        print(f"demo: {exc}", file=sys.stderr)
+        status = 1
+    except KeyboardInterrupt:
+        status = 130
+    finally:
+        for proc in (simulator, estimator):
+            if proc is not None:
+                stop(proc)
+        executor.shutdown()
+        spinner.join(timeout=5)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())
