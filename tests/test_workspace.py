@@ -95,7 +95,7 @@ def test_adrun_lists_and_rejects():
 )
 def test_adrun_runs_executable_help(package, executable):
     # Every CLI answers --help; this also proves adrun finds and execs the installed script.
-    result = run([str(ADRUN), package, executable, "--help"], timeout=60)
+    result = run([str(ADRUN), package, executable, "--help"], timeout=30)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "usage" in result.stdout.lower()
 
