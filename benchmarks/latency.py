@@ -134,8 +134,9 @@ def run_ros(args) -> dict:
     from rclpy.parameter import Parameter
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-    from ad_estimator.node import EstimatorNode
+    from ad_estimator.node import GIL_SWITCH_INTERVAL_S, EstimatorNode
 
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # as the node's main() does
     rclpy.init()
     node = EstimatorNode(parameter_overrides=[
         Parameter("model_path", value=str(args.model)), Parameter("threads", value=args.threads),

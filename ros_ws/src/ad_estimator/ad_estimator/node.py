@@ -43,6 +43,10 @@ from ad_estimator.window import (DEFAULT_GAP_THRESHOLD, DEFAULT_SLOT_TOLERANCE, 
 DEFAULT_INPUT_TOPIC = "/ad_sim/view_0/mask"
 LOG_THROTTLE_S = 5.0
 MAX_CLIP_FRAMES = 1000
+# The executor thread runs much Python between callbacks; with the default 5 ms GIL switch
+# interval the inference worker can wait that long for a frame just queued (measured: p95
+# arrival->publish 4.2 ms at 5 ms, 1.6 ms at 0.5 ms, with a 0.3 ms model).
+GIL_SWITCH_INTERVAL_S = 0.0005
 # name -> (default, description); every knob is a ROS parameter.
 PARAMETERS = {
     "model_path": ("", "ONNX model (temporal head for streaming models); empty: the bundled default"),
@@ -367,6 +371,7 @@ def parse_cli(argv: list[str]) -> None:
 
 def main(args=None) -> int:
     parse_cli(sys.argv if args is None else args)
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     rclpy.init(args=args)
     node = None
     try:
