@@ -28,6 +28,11 @@ stamp_matches() { [ "$AD_FORCE" != 1 ] && [ -f "$1" ] && [ "$(cat "$1")" = "$2" 
 
 START=$SECONDS
 
+# One setup at a time per checkout: concurrent runs would install and build over each other.
+mkdir -p "$WS/log"
+exec 9> "$WS/log/.setup.lock"
+if command -v flock >/dev/null; then flock 9; fi
+
 # 1. Virtual environment --------------------------------------------------------------------
 if [ ! -x "$VENV/bin/python" ]; then
     step "creating virtual environment $VENV ($PYTHON)"
@@ -100,7 +105,6 @@ if stamp_matches "$BUILD_STAMP" "$FINGERPRINT" && all_installed; then
     skip "ros_ws build"
 else
     step "colcon build of ros_ws (ad_msgs, ad_sim, ad_estimator)"
-    mkdir -p "$WS/log"
     (
         cd "$WS"
         # Build against the venv only, whatever the calling shell had sourced.
