@@ -277,9 +277,13 @@ class EstimatorNode(Node):
         try:
             response.estimate = self.estimate_clip(list(request.frames))
             response.success = True
-        except (ValueError, ImageRejected) as exc:
+        except ValueError as exc:  # bad clip (ImageRejected is one)
             response.success = False
             response.message = str(exc)
+        except Exception as exc:  # noqa: BLE001 - a service error must not take the node down
+            response.success = False
+            response.message = f"estimation failed: {type(exc).__name__}: {exc}"
+            self.get_logger().error(response.message)
         return response
 
     def estimate_clip(self, frames: list[Image]) -> MaterialEstimate:
