@@ -3,12 +3,15 @@
 Episodes are simulated in batches by a worker thread ahead of playback and published with
 simulated stamps (ad_sim.messages.frame_stamp, base 0), paced by real_time_factor.
 
-Flow control with real_time_factor 0 (as fast as possible): after each frame the node waits
-until every matched reliable subscription has acknowledged what was published
-(Publisher.wait_for_all_acked), so it never runs more than one frame ahead of a subscriber's
-history; `ros2 run ad_sim record` subscribes with KEEP_ALL history, so an acknowledged sample is
-never overwritten before it is written. Set wait_for_subscribers to N to start playing only
-once every simulator topic has N matched subscriptions (e.g. a recorder started first).
+Flow control (no loss to a reliable subscriber that keeps up on average): a reliable keep-last
+writer drops its oldest sample when its history is full, even if a subscriber has not
+acknowledged it. So before a topic's publisher holds qos_depth unacknowledged messages the node
+waits for its subscribers' acknowledgements (Publisher.wait_for_all_acked); with
+real_time_factor 0 this is what paces playback. `ros2 run ad_sim record` subscribes with
+KEEP_ALL history, so an acknowledged sample is never overwritten before it is written.
+Waiting at every frame instead would cost a DDS heartbeat period (3 s on Fast DDS) per frame.
+Set wait_for_subscribers to N to start playing only once every simulator topic has N matched
+subscriptions (e.g. a recorder started first).
 """
 
 from __future__ import annotations
@@ -76,6 +79,39 @@ def ros_qos(qos: dict) -> QoSProfile:
     )
 
 
+class SimPublishers:
+    """Publishers of the simulator topics with the flow control described above."""
+
+    def __init__(self, node: Node, views: int, prefix: str = messages.DEFAULT_PREFIX, depth: int = messages.QOS_DEPTH):
+        self.logger = node.get_logger()
+        self.depth = depth
+        self.by_topic = {}
+        for topic, type_name in messages.topic_types(views, prefix).items():
+            qos = ros_qos(dict(messages.topic_qos(topic, prefix), depth=depth))
+            self.by_topic[topic] = (type_name, node.create_publisher(import_message_class(type_name), topic, qos))
+        self.unacknowledged = dict.fromkeys(self.by_topic, 0)
+        self.published = 0
+
+    def publish(self, topic: str, data: dict) -> None:
+        """Publish a messages.* dict on `topic`."""
+        type_name, publisher = self.by_topic[topic]
+        if self.unacknowledged[topic] >= self.depth - 1:
+            self.wait_for_acks([topic])
+        publisher.publish(to_ros_message(type_name, data))
+        self.unacknowledged[topic] += 1
+        self.published += 1
+
+    def wait_for_acks(self, topics=None) -> None:
+        for topic in self.by_topic if topics is None else topics:
+            if not self.by_topic[topic][1].wait_for_all_acked(Duration(seconds=ACK_TIMEOUT)):
+                self.logger.warning(f"subscribers of {topic} did not acknowledge within {ACK_TIMEOUT} s")
+            self.unacknowledged[topic] = 0
+
+    def matched(self, count: int) -> bool:
+        """True once every topic has at least `count` matched subscriptions."""
+        return all(publisher.get_subscription_count() >= count for _, publisher in self.by_topic.values())
+
+
 class SimNode(Node):
     def __init__(self, stop: threading.Event):
         super().__init__("ad_sim")
@@ -106,12 +142,9 @@ class SimNode(Node):
         self.prefix = self.param("topic_prefix").rstrip("/")
         self.instances = self._load_instances()
         self.views = int(self.param("views")) or max(instance.views for instance in self.instances)
-        self.publishers_by_topic = {}
-        for topic, type_name in messages.topic_types(self.views, self.prefix).items():
-            qos = dict(messages.topic_qos(topic, self.prefix), depth=int(self.param("qos_depth")))
-            self.publishers_by_topic[topic] = (type_name, self.create_publisher(import_message_class(type_name), topic, ros_qos(qos)))
-        self.published = 0
+        self.sim_publishers = SimPublishers(self, self.views, self.prefix, int(self.param("qos_depth")))
         self.episodes = queue.Queue(maxsize=2 * int(self.param("batch")))
+        self.failed = False
 
     def _load_instances(self) -> list:
         from . import instances as library
@@ -153,9 +186,11 @@ class SimNode(Node):
                     break
         except Exception as exc:  # report and end playback rather than hang the publisher
             self.get_logger().error(f"simulation failed: {type(exc).__name__}: {exc}")
+            self.failed = True
             self.stop.set()
         finally:
-            self.episodes.put(None)
+            if not self.stop.is_set():
+                self.episodes.put(None)
 
     # -- playback
 
@@ -163,16 +198,9 @@ class SimNode(Node):
         wanted = int(self.param("wait_for_subscribers"))
         if wanted <= 0:
             return
-        self.get_logger().info(f"waiting for {wanted} subscription(s) on each of {len(self.publishers_by_topic)} topics")
-        while not self.stop.is_set():
-            if all(pub.get_subscription_count() >= wanted for _, pub in self.publishers_by_topic.values()):
-                return
+        self.get_logger().info(f"waiting for {wanted} subscription(s) on each of {len(self.sim_publishers.by_topic)} topics")
+        while not self.stop.is_set() and not self.sim_publishers.matched(wanted):
             time.sleep(0.05)
-
-    def _wait_for_acks(self) -> None:
-        for topic, (_, publisher) in self.publishers_by_topic.items():
-            if not publisher.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT)):
-                self.get_logger().warning(f"subscribers of {topic} did not acknowledge within {ACK_TIMEOUT} s")
 
     def _sleep_until(self, wall: float) -> None:
         while not self.stop.is_set():
@@ -202,20 +230,15 @@ class SimNode(Node):
             for topic, stamp, data in messages.episode_messages(episode, index, prefix=self.prefix, frame_prefix=frame_prefix):
                 if self.stop.is_set():
                     break
-                if stamp != last_stamp:  # a new frame
-                    if last_stamp is not None and self.rate == 0:
-                        self._wait_for_acks()
-                    if self.rate > 0:
+                if stamp != last_stamp and self.rate > 0:  # a new frame
                         if clock_start is None or time.monotonic() > clock_start + stamp / 1e9 / self.rate + 0.5:
                             clock_start = time.monotonic() - stamp / 1e9 / self.rate  # start, or fell behind
                         self._sleep_until(clock_start + stamp / 1e9 / self.rate)
-                    last_stamp = stamp
-                type_name, publisher = self.publishers_by_topic[topic]
-                publisher.publish(to_ros_message(type_name, data))
-                self.published += 1
+                last_stamp = stamp
+                self.sim_publishers.publish(topic, data)
             index += 1
-        self._wait_for_acks()
-        self.get_logger().info(f"published {index} episode(s), {self.published} messages")
+        self.sim_publishers.wait_for_acks()
+        self.get_logger().info(f"published {index} episode(s), {self.sim_publishers.published} messages")
 
 
 def main(args: list[str] | None = None) -> None:
@@ -232,6 +255,8 @@ def main(args: list[str] | None = None) -> None:
         spinner.start()
         node.play()
         executor.shutdown(timeout_sec=1.0)
+        if node.failed:
+            raise SystemExit(1)
     except ValueError as exc:
         print(f"ad_sim node: {exc}")
         raise SystemExit(2) from None

@@ -1,0 +1,57 @@
+"""Running the ad_sim executables as `ros2 run` would (scripts/adrun) and reading their logs."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+ADRUN = REPO_ROOT / "scripts" / "adrun"
+
+
+def start(executable: str, domain: int, log: Path, **params) -> subprocess.Popen:
+    """Start `ad_sim <executable>` with ROS parameters on ROS domain `domain`, output to `log`."""
+    args = [str(ADRUN), "ad_sim", executable, "--ros-args"]
+    for name, value in params.items():
+        if isinstance(value, bool):
+            value = str(value).lower()
+        elif isinstance(value, (list, tuple)):
+            value = "[" + ",".join(f"'{v}'" for v in value) + "]"
+        args += ["-p", f"{name}:={value}"]
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0")
+    return subprocess.Popen(args, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT)
+
+
+def wait_for_log(log: Path, pattern: str, process: subprocess.Popen, timeout: float = 60.0) -> re.Match:
+    """Wait until `log` has a line matching `pattern` (fails early if the process died)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        match = re.search(pattern, log.read_text())
+        if match:
+            return match
+        if process.poll() is not None:
+            raise AssertionError(f"process exited with {process.returncode} before logging {pattern!r}:\n{log.read_text()}")
+        time.sleep(0.05)
+    raise AssertionError(f"no {pattern!r} within {timeout} s:\n{log.read_text()}")
+
+
+def stop(process: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 30.0) -> int:
+    """Send `sig` and wait for the exit code."""
+    process.send_signal(sig)
+    try:
+        return process.wait(timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+        raise AssertionError(f"process ignored signal {sig} for {timeout} s") from None
+
+
+def recorder_counts(log: str) -> tuple[int, int]:
+    """(received, written) from the recorder's exit log."""
+    match = re.search(r"received (\d+), written (\d+) messages", log)
+    assert match, f"recorder did not log its counts:\n{log}"
+    return int(match.group(1)), int(match.group(2))

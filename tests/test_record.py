@@ -1,0 +1,131 @@
+"""`ros2 run ad_sim record` over real DDS: counts, content, QoS, SIGINT/SIGTERM and kill -9.
+
+An in-process rclpy publisher plays fabricated episodes (ad_sim.messages -> rclpy messages,
+as the simulator node does) with the node's QoS and ack-based flow control; the recorder runs
+as a subprocess, as `ros2 run` starts it.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+from mcap.reader import make_reader
+from ros_procs import recorder_counts, start, stop, wait_for_log
+from sim_fixtures import as_plain, fabricated_episode
+
+from ad_sim import messages
+from ad_sim.rosbag import BagError, BagReader
+
+pytestmark = pytest.mark.ros
+EPISODES = 2
+
+
+class Publisher:
+    """The simulator node's publishers (flow control included), driven by the test."""
+
+    def __init__(self, context, views: int = 1):
+        from rclpy.node import Node
+
+        from ad_sim.sim_node import SimPublishers
+
+        self.node = Node("fake_sim", context=context)
+        self.sim = SimPublishers(self.node, views)
+
+    def wait_for_subscribers(self, count: int = 1, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not self.sim.matched(count):
+            assert time.monotonic() < deadline, "the recorder did not subscribe to every topic"
+            time.sleep(0.05)
+
+    def publish(self, items) -> int:
+        for topic, _, data in items:
+            self.sim.publish(topic, data)
+        return len(items)
+
+    def close(self) -> None:
+        self.node.destroy_node()
+
+
+def episode_items(first: int = 0, count: int = EPISODES):
+    return [item for i in range(first, first + count) for item in messages.episode_messages(fabricated_episode(i), i)]
+
+
+def test_recorder_records_everything_and_finalises_on_sigint(rclpy_context, ros_domain_id, tmp_path):
+    items = episode_items()
+    publisher = Publisher(rclpy_context)
+    try:
+        # The ground truth is published before the recorder starts: transient local delivers it late.
+        published = publisher.publish(items[:1])
+        bag = tmp_path / "rec"
+        recorder = start("record", ros_domain_id, tmp_path / "record.log", output=str(bag))
+        publisher.wait_for_subscribers()
+        published += publisher.publish(items[1:])
+        publisher.sim.wait_for_acks()
+        time.sleep(0.3)
+        assert stop(recorder, signal.SIGINT) == 0
+    finally:
+        publisher.close()
+    log = (tmp_path / "record.log").read_text()
+    assert "Traceback" not in log
+    assert recorder_counts(log) == (published, published) == (len(items), len(items))
+    read = list(BagReader(bag))
+    # Log time is the header stamp, so the bag is in simulated-time order whatever the arrival order.
+    assert sorted((t, s) for t, s, _ in read) == sorted((t, s) for t, s, _ in items)
+    by_key = {(t, s): as_plain(m) for t, s, m in read}
+    for topic, stamp, data in items:
+        assert by_key[(topic, stamp)] == as_plain(data), (topic, stamp)
+    # Offered QoS recorded from the discovered publishers; receive wall time kept as publish time.
+    with open(next(bag.glob("*.mcap")), "rb") as f:
+        reader = make_reader(f)
+        channels = {c.topic: c for c in reader.get_summary().channels.values()}
+        assert "transient_local" in channels["/ad_sim/instance"].metadata["offered_qos_profiles"]
+        assert "volatile" in channels["/ad_sim/particles"].metadata["offered_qos_profiles"]
+        assert all(m.publish_time > 1.6e18 and m.log_time < 1e10 for _, _, m in reader.iter_messages())
+
+
+def test_sigterm_finalises_and_kill9_keeps_flushed_chunks(rclpy_context, ros_domain_id, tmp_path):
+    items = episode_items()
+    publisher = Publisher(rclpy_context)
+    try:
+        terminated = start("record", ros_domain_id, tmp_path / "term.log", output=str(tmp_path / "term"))
+        killed = start("record", ros_domain_id, tmp_path / "kill.log", output=str(tmp_path / "kill"), flush_period=0.2)
+        publisher.wait_for_subscribers(count=2)
+        published = publisher.publish(items)
+        publisher.sim.wait_for_acks()
+        time.sleep(1.0)  # > flush_period: everything received is in flushed chunks
+        killed.send_signal(signal.SIGKILL)
+        killed.wait(10)
+        assert stop(terminated, signal.SIGTERM) == 0
+    finally:
+        publisher.close()
+    log = (tmp_path / "term.log").read_text()
+    assert "Traceback" not in log and recorder_counts(log) == (published, published)
+    assert len(list(BagReader(tmp_path / "term"))) == published  # finalised: reads without recover
+    with pytest.raises(BagError, match="truncated"):
+        list(BagReader(tmp_path / "kill"))
+    with pytest.warns(UserWarning, match="truncated"):
+        recovered = list(BagReader(tmp_path / "kill", recover=True))
+    assert sorted((t, s) for t, s, _ in recovered) == sorted((t, s) for t, s, _ in items)
+
+
+def test_recorder_records_only_the_topics_asked_for(rclpy_context, ros_domain_id, tmp_path):
+    items = episode_items(count=1)
+    publisher = Publisher(rclpy_context)
+    try:
+        recorder = start("record", ros_domain_id, tmp_path / "r.log", output=str(tmp_path / "some"), topics=["/ad_sim/instance", "/ad_sim/particles"])
+        wait_for_log(tmp_path / "r.log", r"subscribed to /ad_sim/particles", recorder)
+        wait_for_log(tmp_path / "r.log", r"subscribed to /ad_sim/instance", recorder)
+        deadline = time.monotonic() + 30
+        while publisher.sim.by_topic["/ad_sim/particles"][1].get_subscription_count() < 1:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        publisher.publish(items)
+        publisher.sim.wait_for_acks(["/ad_sim/instance", "/ad_sim/particles"])
+        time.sleep(0.3)
+        assert stop(recorder) == 0
+    finally:
+        publisher.close()
+    assert BagReader(tmp_path / "some").topics() == {"/ad_sim/instance": messages.INSTANCE_TYPE, "/ad_sim/particles": messages.POINT_CLOUD_TYPE}
+    assert len(list(BagReader(tmp_path / "some"))) == 1 + 25
