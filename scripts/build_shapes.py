@@ -31,10 +31,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 SHAPES_DIR = REPO / "ros_ws/src/ad_sim/ad_sim/data/shapes"
-MESH_DIR = SHAPES_DIR / "meshes"
-CATALOG_FILE = SHAPES_DIR / "catalog.json"
-SPLIT_FILE = SHAPES_DIR / "split_v1.json"
-ATTRIBUTION_FILE = SHAPES_DIR / "ATTRIBUTION.md"
+CATALOG_FILE = "catalog.json"
+SPLIT_FILE = "split_v1.json"
+ATTRIBUTION_FILE = "ATTRIBUTION.md"
 
 MAX_FACES = 2000
 FILL_RESOLUTION = 96  # winding-number grid cells along the longest side
@@ -376,9 +375,6 @@ def synthetic_shapes() -> dict[str, tuple[str, object]]:
     def ball(r, at):
         return M.sphere(r, seg).translate(at)
 
-    golden = (1 + 5 ** 0.5) / 2
-    icosa = np.array([[0, s1, s2 * golden] for s1 in (-1, 1) for s2 in (-1, 1)], float)
-    icosa = np.vstack([icosa, np.roll(icosa, 1, axis=1), np.roll(icosa, 2, axis=1)])
     shapes = {
         "box": ("cube, side 1", M.cube((1, 1, 1), True)),
         "sphere": ("sphere, diameter 1", M.sphere(0.5, seg)),
@@ -391,7 +387,8 @@ def synthetic_shapes() -> dict[str, tuple[str, object]]:
         "tetrahedron": ("regular tetrahedron (alternate cube corners)",
                         M.hull_points(np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float))),
         "octahedron": ("regular octahedron", M.hull_points(np.vstack([np.eye(3), -np.eye(3)]))),
-        "icosahedron": ("regular icosahedron", M.hull_points(icosa)),
+        "open_box": ("open-topped box 1 x 1 x 0.7 with walls and floor 0.15 thick",
+                     M.batch_boolean([M.cube((1, 1, .7), True), M.cube((.7, .7, .7), True).translate((0, 0, .2))], sub)),
         "hex_prism": ("hexagonal prism, across corners 1, height 0.45", M.cylinder(0.45, 0.5, 0.5, 6, True)),
         "tri_prism": ("equilateral triangular prism, side 0.6, length 1",
                       _extrude(0.6 / 3 ** 0.5 * np.array([[np.cos(a), np.sin(a)] for a in np.pi / 2 + np.arange(3) * 2 * np.pi / 3]), 1.0)
@@ -443,7 +440,7 @@ SPLIT = {
                      "dino"],
     },
     "unseen": {
-        "synthetic": ["torus", "octahedron", "icosahedron", "hex_prism", "tri_prism", "pyramid", "wedge", "t_block",
+        "synthetic": ["torus", "octahedron", "open_box", "hex_prism", "tri_prism", "pyramid", "wedge", "t_block",
                       "cross", "ring_slab", "tube", "dumbbell", "arch", "stairs", "rounded_box"],
         "everyday": ["milk_carton", "kettle", "stove_knob", "hex_nut", "faucet_base", "camera", "lego_brick", "pinion",
                      "camel", "bull", "pig", "duck", "lion_head", "homer", "hand"],
@@ -528,7 +525,7 @@ side is 1 (it fits [-0.5, 0.5]^3), with outward normals. Files are gzipped binar
 
 
 # ----------------------------------------------------------------------------- build / verify
-def build(cache: Path) -> None:
+def build(cache: Path, shapes_dir: Path = SHAPES_DIR) -> None:
     from tqdm import tqdm
 
     synthetic = synthetic_shapes()
@@ -552,16 +549,17 @@ def build(cache: Path) -> None:
                         "licence": licence, "file": mesh_file(name), "faces": len(mesh.faces),
                         "sha256": hashlib.sha256(meshes[name]).hexdigest()})
     records.sort(key=lambda r: r["name"])
-    MESH_DIR.mkdir(parents=True, exist_ok=True)
-    for stale in set(MESH_DIR.glob("*.ply.gz")) - {SHAPES_DIR / r["file"] for r in records}:
+    mesh_dir = shapes_dir / "meshes"
+    mesh_dir.mkdir(parents=True, exist_ok=True)
+    for stale in set(mesh_dir.glob("*.ply.gz")) - {shapes_dir / r["file"] for r in records}:
         stale.unlink()
     for name, data in meshes.items():
-        (SHAPES_DIR / mesh_file(name)).write_bytes(data)
-    CATALOG_FILE.write_text(json.dumps({"version": SPLIT_VERSION, "shapes": records}, indent=1) + "\n")
-    SPLIT_FILE.write_text(json.dumps({"version": SPLIT_VERSION, **SPLIT}, indent=1) + "\n")
-    ATTRIBUTION_FILE.write_text(attribution_text(records))
+        (shapes_dir / mesh_file(name)).write_bytes(data)
+    (shapes_dir / CATALOG_FILE).write_text(json.dumps({"version": SPLIT_VERSION, "shapes": records}, indent=1) + "\n")
+    (shapes_dir / SPLIT_FILE).write_text(json.dumps({"version": SPLIT_VERSION, **SPLIT}, indent=1) + "\n")
+    (shapes_dir / ATTRIBUTION_FILE).write_text(attribution_text(records))
     total = sum(len(d) for d in meshes.values())
-    print(f"wrote {len(records)} meshes ({total / 1e6:.2f} MB) to {SHAPES_DIR}")
+    print(f"wrote {len(records)} meshes ({total / 1e6:.2f} MB) to {shapes_dir}")
 
 
 def check_mesh(mesh) -> list[str]:
@@ -576,14 +574,15 @@ def check_mesh(mesh) -> list[str]:
     return problems
 
 
-def verify() -> list[str]:
+def verify(shapes_dir: Path = SHAPES_DIR) -> list[str]:
     """Cheap consistency checks of the committed files; returns the problems found."""
     problems = []
-    if not SPLIT_FILE.is_file() or not CATALOG_FILE.is_file():
-        return [f"missing {SPLIT_FILE.name} or {CATALOG_FILE.name} in {SHAPES_DIR}: run `build` first"]
-    split = json.loads(SPLIT_FILE.read_text())
+    split_file, catalog_file = shapes_dir / SPLIT_FILE, shapes_dir / CATALOG_FILE
+    if not split_file.is_file() or not catalog_file.is_file():
+        return [f"missing {SPLIT_FILE} or {CATALOG_FILE} in {shapes_dir}: run `build` first"]
+    split = json.loads(split_file.read_text())
     if split != {"version": SPLIT_VERSION, **SPLIT}:
-        problems.append(f"{SPLIT_FILE.name} differs from SPLIT in this script")
+        problems.append(f"{SPLIT_FILE} differs from SPLIT in this script")
     expected_counts = {("train", "synthetic"): 10, ("train", "everyday"): 20,
                        ("unseen", "synthetic"): 15, ("unseen", "everyday"): 15}
     for (part, kind), count in expected_counts.items():
@@ -594,7 +593,7 @@ def verify() -> list[str]:
                    for n in split.get(part, {}).get(kind, [])]
     if len(split_names) != len(set(split_names)):
         problems.append("a shape appears twice in the split")
-    records = json.loads(CATALOG_FILE.read_text())["shapes"]
+    records = json.loads(catalog_file.read_text())["shapes"]
     by_name = {r["name"]: r for r in records}
     if set(by_name) != set(split_names):
         problems.append(f"catalogue and split disagree: {sorted(set(by_name) ^ set(split_names))}")
@@ -607,20 +606,21 @@ def verify() -> list[str]:
     for r in records:
         if r["name"] in split_names and r["split"] != split_of(r["name"]):
             problems.append(f"{r['name']}: catalogue split {r['split']!r} differs from the split file")
-        path = SHAPES_DIR / r["file"]
+        path = shapes_dir / r["file"]
         if not path.is_file():
             problems.append(f"{r['name']}: missing {path}")
         elif hashlib.sha256(path.read_bytes()).hexdigest() != r["sha256"]:
             problems.append(f"{r['name']}: {path.name} does not match its sha256 in the catalogue")
-    extra = {p.name for p in MESH_DIR.glob("*")} - {Path(r["file"]).name for r in records}
+    extra = {p.name for p in (shapes_dir / "meshes").glob("*")} - {Path(r["file"]).name for r in records}
     if extra:
         problems.append(f"files not in the catalogue: {sorted(extra)}")
-    attribution = ATTRIBUTION_FILE.read_text() if ATTRIBUTION_FILE.is_file() else ""
+    attribution_file = shapes_dir / ATTRIBUTION_FILE
+    attribution = attribution_file.read_text() if attribution_file.is_file() else ""
     if attribution != attribution_text(records):
-        problems.append(f"{ATTRIBUTION_FILE.name} is missing or out of date (rerun `build`)")
+        problems.append(f"{ATTRIBUTION_FILE} is missing or out of date (rerun `build`)")
     missing = [r["name"] for r in records if r["kind"] == "everyday" and f"| {r['name']} |" not in attribution]
     if missing:
-        problems.append(f"{ATTRIBUTION_FILE.name} does not list {missing}")
+        problems.append(f"{ATTRIBUTION_FILE} does not list {missing}")
     return problems
 
 
@@ -630,16 +630,18 @@ def main(argv: list[str] | None = None) -> int:
     b = sub.add_parser("build", help="download the packages and rebuild every mesh, the catalogue, split and attribution")
     b.add_argument("--cache", type=Path, default=REPO / ".cache/shape-packages",
                    help="where downloaded wheels and .deb files are kept (default: %(default)s)")
-    sub.add_parser("verify", help="cheap check that the committed files agree with each other and with this script")
+    v = sub.add_parser("verify", help="cheap check that the committed files agree with each other and with this script")
+    for p in (b, v):
+        p.add_argument("--shapes-dir", type=Path, default=SHAPES_DIR, help="library folder (default: %(default)s)")
     args = parser.parse_args(argv)
     if args.command == "build":
-        build(args.cache)
-    problems = verify()
+        build(args.cache, args.shapes_dir)
+    problems = verify(args.shapes_dir)
     for problem in problems:
         print(f"verify: {problem}", file=sys.stderr)
     if problems:
         return 1
-    print(f"verify: ok ({SPLIT_FILE.relative_to(REPO)}, {CATALOG_FILE.name}, {ATTRIBUTION_FILE.name}, meshes/)")
+    print(f"verify: ok ({args.shapes_dir}: {SPLIT_FILE}, {CATALOG_FILE}, {ATTRIBUTION_FILE}, meshes/)")
     return 0
 
 
