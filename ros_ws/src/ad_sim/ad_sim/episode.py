@@ -28,9 +28,6 @@ from .render import (
     render_masks,
 )
 
-# Thin shapes give few particles at the nominal spacing; the spacing shrinks by this factor
-# until farthest point sampling has TRACKED_PARTICLES to choose from.
-SPACING_REFINEMENT = 1.25
 # Scenes per solver launch: on a GPU many scenes share a launch; on CPU large batches only
 # waste the iterations of scenes that need fewer substeps than the stiffest one.
 MAX_BATCH = {"cpu": 16, "cuda": 1024}
@@ -63,13 +60,14 @@ class _Prepared:
 
 
 def sample_particles(instance: Instance) -> tuple[np.ndarray, float]:
-    """World positions (N, 3) of the instance's posed particles (N >= 1024) and their spacing."""
+    """World positions (N, 3) of the instance's posed particles (N >= 1024) and their spacing.
+
+    Thin shapes get a finer lattice than PARTICLE_SPACING, so that farthest point sampling
+    has TRACKED_PARTICLES to choose from.
+    """
     rng = np.random.Generator(np.random.PCG64(instance.sampling_seed))
-    spacing = PARTICLE_SPACING
-    local = shapes.sample_volume(instance.shape, spacing, scale=SCALE, rng=rng)
-    while len(local) < TRACKED_PARTICLES:
-        spacing /= SPACING_REFINEMENT
-        local = shapes.sample_volume(instance.shape, spacing, scale=SCALE, rng=rng)
+    local = shapes.sample_volume(instance.shape, PARTICLE_SPACING, SCALE, rng, min_count=TRACKED_PARTICLES)
+    spacing = shapes.effective_spacing(instance.shape, PARTICLE_SPACING, SCALE, TRACKED_PARTICLES)
     pose = instance.pose()
     return local @ pose[:3, :3].T + pose[:3, 3], spacing
 

@@ -23,14 +23,16 @@ from .render import Camera, sample_cameras
 SPLITS = ("train", "seen", "unseen", "custom")
 BENCHMARK_SPLITS = ("train", "seen", "unseen")
 
-# The normalised mesh ([-0.5, 0.5]^3) is scaled by SCALE into the unit-cube domain. At particle
-# spacing dx/2 = 1/64 this gives ~3k (thin shapes) to ~11k (box) particles.
-SCALE = 0.35
+# The normalised mesh ([-0.5, 0.5]^3, longest side 1) is scaled by SCALE into the unit-cube
+# domain. At particle spacing dx/2 = 1/64 this gives ~9k particles for the sphere, ~16k for the
+# box and 1-4k for most everyday objects (thin ones get a finer lattice, see episode.py). Any
+# rotation of it (at most SCALE * sqrt(3) across) fits between the walls.
+SCALE = 0.4
 PARTICLE_SPACING = 0.5 * mpm.DX
 # Ground and walls: the solver's boundary layer is BOUNDARY_CELLS grid cells thick on every side.
 BOUNDARY = mpm.BOUNDARY_CELLS * mpm.DX
 WALL_MARGIN = 0.02  # keep the object this far from the walls at t = 0
-DROP_GAP = (0.05, 0.25)  # object's lowest point above the ground at t = 0
+DROP_GAP = (0.05, 0.25)  # object's lowest point above the ground at t = 0 (less if the ceiling is near)
 XY_JITTER = 0.1  # centre of the object within +-XY_JITTER of the domain's middle
 HORIZONTAL_SPEED = 0.2  # m/s, largest initial horizontal speed
 DOWNWARD_SPEED = (0.0, 0.5)  # m/s, initial downward speed
@@ -93,7 +95,7 @@ class Instance:
     seed: int
     views: int = 1
     orientation: tuple[float, float, float, float] = field(init=False)  # unit quaternion (x, y, z, w)
-    drop_gap: float = field(init=False)  # lowest point above the ground at t = 0
+    drop_gap: float = field(init=False)  # lowest point above the ground at t = 0 (position() caps it)
     jitter: tuple[float, float] = field(init=False)  # x/y offset of the object's centre from the middle
     velocity: tuple[float, float, float] = field(init=False)  # initial velocity (m/s)
     camera_seed: int = field(init=False)
@@ -121,7 +123,9 @@ class Instance:
         wall_low, wall_high = BOUNDARY + WALL_MARGIN, 1.0 - BOUNDARY - WALL_MARGIN
         centre = 0.5 + np.array(self.jitter) - 0.5 * (low[:2] + high[:2])
         xy = np.clip(centre, wall_low - low[:2], wall_high - high[:2])
-        return np.array([xy[0], xy[1], BOUNDARY + self.drop_gap - low[2]])
+        # Tall poses get a smaller gap so that the top stays below the ceiling's boundary layer.
+        gap = min(self.drop_gap, wall_high - BOUNDARY - (high[2] - low[2]))
+        return np.array([xy[0], xy[1], BOUNDARY + gap - low[2]])
 
     def pose(self) -> np.ndarray:
         """(4, 4) transform from the scaled mesh frame to the world at t = 0."""

@@ -28,9 +28,9 @@ BIND_NEIGHBOURS = 4
 
 # Cameras look at the region where objects fall and land (the domain is the unit cube,
 # z up, ground boundary at z ~ 0.09). A sphere of VIEW_RADIUS around CAMERA_TARGET is kept
-# inside the field of view, which holds the drop region and most of the floor.
-CAMERA_TARGET = (0.5, 0.5, 0.3)
-VIEW_RADIUS = 0.55
+# inside the field of view: it holds every drop pose and the floor but for its far corners.
+CAMERA_TARGET = (0.5, 0.5, 0.35)
+VIEW_RADIUS = 0.6
 CAMERA_DISTANCE = (1.5, 2.0)
 CAMERA_ELEVATION_DEG = (10.0, 45.0)
 
