@@ -13,7 +13,7 @@ FRAMES = 6  # 0.125 s: the objects are still falling or just landing
 def instances() -> list[Instance]:
     return [
         Instance("e2e-sphere", "custom", "sphere", "jelly", {"youngs_modulus": 2e4, "poissons_ratio": 0.3}, seed=11, views=2),
-        Instance("e2e-box", "custom", "box", "sand", {"youngs_modulus": 1e5, "poissons_ratio": 0.3, "friction_angle": 0.6}, seed=12),
+        Instance("e2e-cone", "custom", "cone", "sand", {"youngs_modulus": 1e5, "poissons_ratio": 0.3, "friction_angle": 0.6}, seed=12),
         Instance(
             "e2e-torus", "custom", "torus", "plasticine", {"youngs_modulus": 6e4, "poissons_ratio": 0.4, "yield_stress": 800.0}, seed=13
         ),
@@ -26,7 +26,7 @@ def episodes() -> list[Episode]:
 
 
 def test_episodes_have_the_documented_shapes(episodes):
-    assert [e.instance.episode_id for e in episodes] == ["e2e-sphere", "e2e-box", "e2e-torus"]
+    assert [e.instance.episode_id for e in episodes] == ["e2e-sphere", "e2e-cone", "e2e-torus"]
     for episode in episodes:
         views = episode.instance.views
         assert episode.positions.shape == (FRAMES, 1024, 3) and episode.positions.dtype == np.float32
