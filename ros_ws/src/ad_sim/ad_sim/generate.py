@@ -46,12 +46,18 @@ def _file_digests(folder: Path) -> dict[str, str]:
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.glob("*.mcap"))}
 
 
-def write_episodes(writer: BagWriter, episodes, first_index: int, prefix: str = messages.DEFAULT_PREFIX) -> int:
-    """Write episodes to an open bag, numbering them from first_index; returns messages written."""
+def write_episodes(
+    writer: BagWriter, episodes, first_index: int, prefix: str = messages.DEFAULT_PREFIX, skip: frozenset[str] = frozenset()
+) -> int:
+    """Write episodes to an open bag, numbering them from first_index; returns messages written.
+
+    Topics in `skip` are left out."""
     written = 0
     for offset, episode in enumerate(episodes):
         types = messages.topic_types(len(episode.cameras), prefix)
         for topic, stamp, message in messages.episode_messages(episode, first_index + offset, prefix=prefix):
+            if topic in skip:
+                continue
             if not writer.has_topic(topic):
                 writer.add_topic(topic, types[topic], [qos_profile(**messages.topic_qos(topic, prefix))])
             writer.write(topic, stamp, message)
@@ -69,6 +75,7 @@ def generate_shard(
     max_bag_size: int = 0,
     compression: str = "zstd",
     custom_data: dict[str, str] | None = None,
+    skip: frozenset[str] = frozenset(),
     progress: bool = True,
 ) -> bool:
     """Simulate `instances` and write them as one bag folder; False if it was already done."""
@@ -85,7 +92,7 @@ def generate_shard(
     with tqdm(total=len(instances), desc=folder.name, unit="episode", disable=not progress) as bar:
         for start in range(0, len(instances), batch):
             episodes = simulate_batch(instances[start : start + batch], device=device, views=views)
-            write_episodes(writer, episodes, start)
+            write_episodes(writer, episodes, start, skip=skip)
             bar.update(len(episodes))
     writer.close()
     done = {"episodes": len(instances), "messages": writer.message_count, "sha256": _file_digests(folder)}
@@ -115,6 +122,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--limit", type=int, help="use only the first n instances (quick looks)")
     parser.add_argument("--max-bag-size", type=int, default=0, help="split .mcap files at this many bytes (0: never)")
     parser.add_argument("--compression", default="zstd", choices=("zstd", "lz4", "none"), help="chunk compression (default %(default)s)")
+    parser.add_argument(
+        "--skip-particles", action="store_true", help="leave out /ad_sim/particles (60 KB a frame, hardly compressible): masks-only bags"
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
 
@@ -158,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
                 max_bag_size=args.max_bag_size,
                 compression=args.compression,
                 custom_data=custom,
+                skip=frozenset([messages.particles_topic()]) if args.skip_particles else frozenset(),
                 progress=not args.quiet,
             )
         except BagError as exc:

@@ -25,6 +25,7 @@ import threading
 import time
 
 import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -124,7 +125,7 @@ class SimNode(Node):
         p("shape", "")  # single instance: shape, material, its parameters (SI, radians) and instance_seed
         p("material", "jelly")
         for name in SINGLE_INSTANCE_PARAMETERS:
-            p(name, math.nan)
+            p(name, math.nan, ParameterDescriptor(dynamic_typing=True))  # 1500000 or 1.5e6 alike
         p("instance_seed", 0)
         p("real_time_factor", 1.0)
         p("views", 0)  # cameras per episode; 0: the instances' own (4 train, 1 evaluation)
@@ -152,7 +153,7 @@ class SimNode(Node):
         if self.param("instances"):
             found = library.load_instance_file(self.param("instances"))
         elif self.param("shape"):
-            parameters = {n: self.param(n) for n in SINGLE_INSTANCE_PARAMETERS if not math.isnan(self.param(n))}
+            parameters = {n: float(self.param(n)) for n in SINGLE_INSTANCE_PARAMETERS if not math.isnan(float(self.param(n)))}
             entry = {"shape": self.param("shape"), "material": self.param("material"), "parameters": parameters, "seed": self.param("instance_seed")}
             # The same validation as an instance-file entry (instances owns it).
             found = [library._instance_from_entry(entry, 0, "node parameters")]
@@ -251,14 +252,15 @@ def main(args: list[str] | None = None) -> None:
         node = SimNode(stop)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        spinner = threading.Thread(target=executor.spin, name="spin", daemon=True)
+        spinner = threading.Thread(target=executor.spin, name="spin")
         spinner.start()
         node.play()
         executor.shutdown(timeout_sec=1.0)
+        spinner.join()
         if node.failed:
             raise SystemExit(1)
-    except ValueError as exc:
-        print(f"ad_sim node: {exc}")
+    except (OSError, ValueError) as exc:  # bad parameters or instance file
+        print(f"ad_sim node: {exc}", flush=True)
         raise SystemExit(2) from None
     finally:
         if node is not None:
