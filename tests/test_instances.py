@@ -94,7 +94,7 @@ def test_paper_benchmark_counts_and_seeds():
 
 
 def test_small_and_tiny_benchmarks_are_deterministic_and_nested():
-    for size, expected in (("small", {"train": 180, "seen": 90, "unseen": 90}), ("tiny", {"train": 6, "seen": 6, "unseen": 6})):
+    for size, expected in (("small", {"train": 360, "seen": 90, "unseen": 90}), ("tiny", {"train": 6, "seen": 6, "unseen": 6})):
         for split, count in expected.items():
             assert len(benchmark(size, split)) == count
     tiny = benchmark("tiny", "unseen")

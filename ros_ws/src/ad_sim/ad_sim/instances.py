@@ -152,13 +152,13 @@ class BenchmarkSize:
 
 
 # paper: SPEC 7 (9000 / 900 / 900). tiny: 6 episodes per split (2 shapes x 3 families), CI.
-# small: 180 / 90 / 90 on all 60 shapes (every (shape, family) pair seen once in each test split).
-# On CPU the solver takes ~10 s per episode (one core, ~40 substeps per frame on average), so
-# small's 360 episodes generate in about an hour on one core, half that with two shards, and a
-# student trains on them on 2 CPU cores within the hour.
+# small: 360 / 90 / 90 on all 60 shapes (4 training instances per (shape, family), one in each
+# test split). On CPU an episode takes ~2.5 s (one core, measured over the small unseen split),
+# so small's 540 episodes generate in ~25 min on one core and a student trains on them on 2 CPU
+# cores within the hour.
 BENCHMARK_SIZES = {
     "paper": BenchmarkSize({"train": 100, "seen": 10, "unseen": 10}, None),
-    "small": BenchmarkSize({"train": 2, "seen": 1, "unseen": 1}, None),
+    "small": BenchmarkSize({"train": 4, "seen": 1, "unseen": 1}, None),
     "tiny": BenchmarkSize({"train": 1, "seen": 1, "unseen": 1}, 2),
 }
 
