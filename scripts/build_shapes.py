@@ -60,7 +60,6 @@ PACKAGES = {
     "gymnasium-robotics": Package("pypi", "gymnasium-robotics", "1.4.2", "Apache-2.0 (kitchen models)"),
     "pybullet": Package("pypi", "pybullet", "3.2.7", "zlib"),
     "genesis-world": Package("pypi", "genesis-world", "1.4.5", "Apache-2.0"),
-    "myosuite": Package("pypi", "myosuite", "3.0.0", "Apache-2.0"),
     "libcgal-demo": Package("deb", "libcgal-demo", "5.5.1-2", "CC0 (CGAL data meshes)"),
     "assimp-testmodels": Package("deb", "assimp-testmodels", "5.2.5~ds0-1", "BSD-3-Clause"),
 }
@@ -76,6 +75,7 @@ class Everyday:
     "stitch" (open boundary loops capped), "fill" (generalized winding number on a grid,
     threshold 0.5, marching cubes: solidifies loose or open triangles).
     up: the source's up axis; rotated onto +z so that objects stand upright.
+    licence: where the mesh has a licence of its own, other than its package's.
     """
 
     name: str
@@ -83,7 +83,11 @@ class Everyday:
     paths: tuple[str, ...]  # inside the package; "a.tar.gz!member" reads a member of an inner tarball
     method: str
     up: str = "z"
-    note: str = ""
+    licence: str = ""
+
+    @property
+    def mesh_licence(self) -> str:
+        return self.licence or PACKAGES[self.package].licence
 
 
 def _cgal(name: str, method: str = "as-is", up: str = "y", file: str = "") -> Everyday:
@@ -108,9 +112,10 @@ EVERYDAY = [
     Everyday("faucet_base", "metaworld", (MW + "faucet/faucetbase.stl",), "as-is"),
     Everyday("door_handle", "metaworld", (MW + "doorlock/door_handle.stl",), "union"),
     Everyday("camera", "genesis-world", ("genesis/assets/meshes/camera/camera.glb",), "union", "y"),
-    Everyday("duck", "pybullet", ("pybullet_data/duck.obj",), "as-is", "y"),
+    Everyday("duck", "pybullet", ("pybullet_data/duck.obj",), "as-is", "y",
+             "SCEA Shared Source License 1.0 (COLLADA sample)"),
     Everyday("bunny", "pybullet", ("pybullet_data/bunny.obj",), "as-is", "y",
-             "Stanford Bunny, Stanford Computer Graphics Laboratory (Stanford 3D Scanning Repository)"),
+             "Stanford 3D Scanning Repository (free use, acknowledgement requested)"),
     Everyday("traffic_cone", "pybullet", ("pybullet_data/racecar/meshes/cone.obj",), "as-is", "z"),
     Everyday("lego_brick", "pybullet", ("pybullet_data/lego/lego.obj",), "fill", "y"),
     Everyday("bathtub", "genesis-world", ("genesis/assets/meshes/bathtub/bathtub.obj",), "fill", "y"),
@@ -465,7 +470,8 @@ ACKNOWLEDGEMENTS = """\
   libcgal-dev copyright file ("all other files that do not have an explicit copyright notice").
 - Wuson (`wuson`): the Open Asset Import Library (assimp) test models, BSD-3-Clause.
 - robosuite (MIT), Meta-World (MIT), Gymnasium-Robotics kitchen models (Apache-2.0),
-  pybullet data (zlib), Genesis (Apache-2.0), MyoSuite (Apache-2.0): as packaged.
+  pybullet data (zlib), Genesis (Apache-2.0; the package does not document the origin of
+  every asset): as packaged.
 """
 
 
@@ -496,8 +502,8 @@ def attribution_text(records: list[dict]) -> str:
     for r in records:
         if r["kind"] == "everyday":
             entry = next(e for e in EVERYDAY if e.name == r["name"])
-            pkg = PACKAGES[entry.package]
-            rows.append(f"| {r['name']} | {r['split']} | {pkg.label} | {'<br>'.join(entry.paths)} | {pkg.licence} | "
+            rows.append(f"| {r['name']} | {r['split']} | {PACKAGES[entry.package].label} | {'<br>'.join(entry.paths)} | "
+                        f"{entry.mesh_licence} | "
                         f"{METHOD_TEXT[entry.method]}; up axis {entry.up} |")
     return f"""# Shape library: attribution
 
@@ -538,9 +544,8 @@ def build(cache: Path, shapes_dir: Path = SHAPES_DIR) -> None:
             source, method, licence = f"synthetic: {description}", "synthetic", "CC0 (this project)"
         else:
             entry = next(e for e in EVERYDAY if e.name == name)
-            pkg = PACKAGES[entry.package]
-            mesh = process_everyday(entry, fetch_package(pkg, cache))
-            source, method, licence = everyday_source(entry), entry.method, pkg.licence
+            mesh = process_everyday(entry, fetch_package(PACKAGES[entry.package], cache))
+            source, method, licence = everyday_source(entry), entry.method, entry.mesh_licence
         problems = check_mesh(mesh)
         if problems:
             raise SystemExit(f"{name}: {'; '.join(problems)}")
