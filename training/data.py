@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -178,7 +179,12 @@ def _write_shard(folder: Path, episodes: list[dict]) -> None:
     np.save(tmp / "video_view.npy", np.array(views, dtype=np.int64))
     meta = {key: [e[key] for e in episodes] for key in ("episode_id", "shape", "split", "material", "seed")}
     (tmp / "meta.json").write_text(json.dumps(meta))
-    os.replace(tmp, folder)  # atomic: a killed run never leaves a half-written shard
+    try:
+        os.replace(tmp, folder)  # atomic: a killed run never leaves a half-written shard
+    except OSError:
+        if not (folder / "meta.json").exists():
+            raise
+        shutil.rmtree(tmp)  # another process cached the same bag first
 
 
 class Dataset:
@@ -279,10 +285,11 @@ def resize_masks(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return (out / 255.0).reshape(*frames.shape[:-2], h, w)
 
 
-def resized_videos(dataset: Dataset, size: tuple[int, int]) -> list[np.ndarray]:
+def resized_videos(dataset: Dataset, size: tuple[int, int], progress: bool = True) -> list[np.ndarray]:
     """Per shard, every video resized to `size` as float16 in [0, 1], cached beside the shard."""
     out = []
-    for shard in tqdm(dataset.shards, desc=f"resize videos {size[0]}x{size[1]}", unit="bag", leave=False):
+    for shard in tqdm(dataset.shards, desc=f"resize videos {size[0]}x{size[1]}", unit="bag", leave=False,
+                      disable=not progress):
         path = shard / f"videos_{size[0]}x{size[1]}.npy"
         if not path.exists():
             videos = np.load(shard / "videos.npy", mmap_mode="r")

@@ -55,6 +55,17 @@ def init_runtime(device: str = "auto") -> Runtime:
     return Runtime(0, 1, torch.device(device))
 
 
+def main_first(rt: Runtime, work: Callable):
+    """Runs `work` on rank 0 first (e.g. filling a cache), then on the other ranks."""
+    if rt.main:
+        result = work()
+    if rt.world > 1:
+        dist.barrier()
+    if not rt.main:
+        result = work()
+    return result
+
+
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -118,6 +129,7 @@ class FitConfig:
     seed: int = 0
     grad_clip: float = 1.0
     progress: bool = True
+    stop_after: int = 0  # >0: return after this many epochs in this call (time-sliced jobs); rerun to go on
 
 
 def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: Path, cfg: FitConfig, rt: Runtime,
@@ -159,7 +171,8 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
         if rt.main:
             tqdm.write(f"{desc}: resumed from {last} at epoch {epoch}")
 
-    while epoch < cfg.epochs:
+    stop_at = min(cfg.epochs, epoch + cfg.stop_after) if cfg.stop_after > 0 else cfg.epochs
+    while epoch < stop_at:
         sampler.set_epoch(epoch)
         if hasattr(train_set, "set_epoch"):
             train_set.set_epoch(epoch)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +71,15 @@ def _attach(path: Path, meta: dict[str, str]) -> None:
 
 
 def _export(module: nn.Module, args: tuple, path: Path, inputs: list[str], outputs: list[str], dynamic: dict) -> None:
+    # The TorchScript exporter (no onnxscript dependency) warns about its own deprecation and about
+    # Python control flow on shapes that is constant by design (the clip graph takes 25 frames).
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", category=DeprecationWarning)
+        warnings.simplefilter("ignore", category=torch.jit.TracerWarning)
+        _torch_export(module, args, path, inputs, outputs, dynamic)
+
+
+def _torch_export(module, args, path, inputs, outputs, dynamic) -> None:
     torch.onnx.export(module, args, str(path), input_names=inputs, output_names=outputs, dynamic_axes=dynamic,
                       opset_version=OPSET, dynamo=False, do_constant_folding=True)
 

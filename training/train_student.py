@@ -9,7 +9,7 @@ import torch
 from torch.utils.data import Dataset as TorchDataset
 
 from training import data
-from training.engine import BEST, fit, init_runtime, load_checkpoint, seed_everything
+from training.engine import BEST, fit, init_runtime, load_checkpoint, main_first, seed_everything
 from training.models.common import align_loss, masked_regl1, uncertainty_nll
 from training.models.student import FRAME_COUNT, StudentConfig, build_student, student_preset
 from training.models.teacher import TEACHER_PRESETS
@@ -108,14 +108,15 @@ def run(args) -> Path:
     if args.ablation != "none" and not args.teacher:
         raise SystemExit("--teacher is required for --ablation align_only/full (train one with `python -m training "
                          "teacher`), or use --ablation none")
-    ds = data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress)
+    ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
 
     teacher = load_teacher(args.teacher, rt.device) if args.teacher else None
     z_dim = teacher.config.z_dim if teacher else TEACHER_PRESETS[args.size].z_dim
     config = student_preset(args.kind, args.size, z_dim)
     targets = teacher_targets(teacher, ds, rt.device) if teacher and args.ablation != "none" else None
-    frames = data.resized_videos(ds, tuple(config.input_size))
+    frames = main_first(rt, lambda: data.resized_videos(ds, tuple(config.input_size),
+                                                          rt.main and not args.no_progress))
 
     model = build_student(config)
     if teacher is not None and args.ablation != "none":

@@ -9,7 +9,7 @@ import torch
 from torch.utils.data import Dataset as TorchDataset
 
 from training import data
-from training.engine import BEST, FitConfig, fit, init_runtime, load_checkpoint, seed_everything
+from training.engine import BEST, FitConfig, fit, init_runtime, load_checkpoint, main_first, seed_everything
 from training.models.common import task_loss
 from training.models.teacher import TEACHER_PRESETS, Teacher, TeacherConfig
 
@@ -99,12 +99,15 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto", help="auto | cpu | cuda (torchrun: one process per GPU)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch default)")
+    p.add_argument("--stop-after", type=int, default=0,
+                   help="stop after this many epochs in this run (time-limited sessions); rerun to continue")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def fit_config(args) -> FitConfig:
     return FitConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, weight_decay=args.weight_decay,
-                     min_lr=args.min_lr, seed=args.seed, progress=not args.no_progress)
+                     min_lr=args.min_lr, seed=args.seed, progress=not args.no_progress,
+                     stop_after=getattr(args, "stop_after", 0))
 
 
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
@@ -120,7 +123,7 @@ def run(args) -> Path:
         torch.set_num_threads(args.threads)
     seed_everything(args.seed)
     rt = init_runtime(args.device)
-    ds = data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress)
+    ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
     config = TEACHER_PRESETS[args.size]
     model = Teacher(config).to(rt.device)

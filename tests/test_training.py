@@ -1,0 +1,143 @@
+"""Teacher and student training on real (synthetic-content) bags: learning, exact resume after a
+kill, weights-only checkpoints, ablations, DDP over gloo with two processes."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from argparse import Namespace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from training import engine
+from training.models.teacher import TEACHER_PRESETS, Teacher, farthest_point_sampling
+from training.synthetic import write_synthetic_bag
+from training.train_student import ABLATIONS, student_loss
+from training.train_student import run as run_student
+from training.train_teacher import SYMMETRIES, transform_trajectory
+from training.train_teacher import run as run_teacher
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory):
+    root = tmp_path_factory.mktemp("train_bags")
+    write_synthetic_bag(root / "a", 9, views=2, seed=1)
+    return root
+
+
+def _args(bags, out, cache, **kw):
+    base = dict(bags=str(bags), cache=str(cache), out=str(out), size="tiny", epochs=2, batch_size=4, lr=3e-3,
+                min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True)
+    base.update(kw)
+    return Namespace(**base)
+
+
+def test_farthest_point_sampling_spreads_anchors():
+    pts = torch.tensor([[[0.0, 0, 0], [0.1, 0, 0], [1.0, 0, 0], [0.5, 0, 0], [0.9, 0, 0]]])
+    idx = farthest_point_sampling(pts, 3)[0].tolist()
+    assert idx == [0, 2, 3]
+
+
+def test_square_symmetries_are_exact_augmentations():
+    rng = np.random.default_rng(0)
+    traj = rng.normal(size=(25, 16, 15)).astype(np.float32)
+    traj[..., :3] = rng.uniform(0.2, 0.8, size=(25, 16, 3))
+    for r in SYMMETRIES:
+        out = transform_trajectory(traj, r)
+        np.testing.assert_allclose(out[..., 2], traj[..., 2], atol=1e-6)  # gravity axis untouched
+        np.testing.assert_allclose(np.linalg.norm(out[..., 3:6], axis=-1), np.linalg.norm(traj[..., 3:6], axis=-1),
+                                   rtol=1e-5)
+        f, g = traj[..., 6:].reshape(-1, 3, 3), out[..., 6:].reshape(-1, 3, 3)
+        np.testing.assert_allclose(np.linalg.det(g), np.linalg.det(f), rtol=1e-4, atol=1e-5)
+        assert ((out[..., :2] >= 0.2 - 1e-6) & (out[..., :2] <= 0.8 + 1e-6)).all()  # stays in the domain
+    assert len({r.tobytes() for r in SYMMETRIES}) == 8
+
+
+def test_teacher_learns_and_resumes_exactly(bags, tmp_path):
+    cache = tmp_path / "cache"
+    # Reference: 4 epochs in one go.
+    ref = _args(bags, tmp_path / "ref", cache, epochs=4)
+    run_teacher(ref)
+    history = engine.load_checkpoint(tmp_path / "ref" / engine.LAST)["history"]
+    assert history[-1]["train_loss"] < history[0]["train_loss"]
+    # Stopped after 2 epochs (as a kill would), then the same command resumes at epoch 3.
+    run_teacher(_args(bags, tmp_path / "resumed", cache, epochs=4, stop_after=2))
+    state = torch.load(tmp_path / "resumed" / engine.LAST, weights_only=True)  # never arbitrary pickles
+    assert state["epoch"] == 2 and isinstance(state["rng"]["torch"], torch.Tensor)
+    run_teacher(_args(bags, tmp_path / "resumed", cache, epochs=4))
+    a = engine.load_checkpoint(tmp_path / "ref" / engine.LAST)
+    b = engine.load_checkpoint(tmp_path / "resumed" / engine.LAST)
+    assert b["epoch"] == 4 and len(b["history"]) == 4
+    for key, value in a["model"].items():
+        torch.testing.assert_close(b["model"][key], value, rtol=0, atol=0)
+    assert (tmp_path / "ref" / engine.BEST).exists()
+
+
+@pytest.fixture(scope="module")
+def teacher_ckpt(bags, tmp_path_factory):
+    out = tmp_path_factory.mktemp("teacher")
+    return run_teacher(_args(bags, out, out / "cache", epochs=1))
+
+
+@pytest.mark.parametrize("ablation", ABLATIONS)
+def test_student_ablations_train(bags, teacher_ckpt, tmp_path, ablation):
+    best = run_student(_args(bags, tmp_path / "s", tmp_path / "cache", epochs=2, teacher=str(teacher_ckpt),
+                             kind="streaming", ablation=ablation, alpha=0.5, full_clips=False))
+    state = torch.load(best, weights_only=True)
+    teacher = torch.load(teacher_ckpt, weights_only=True)["model"]
+    history = torch.load(tmp_path / "s" / engine.LAST, weights_only=True)["history"]
+    assert state["meta"]["ablation"] == ablation and len(history) == 2
+    key = "temporal.heads.predictor.cls.weight"
+    same = torch.equal(state["model"][key], teacher["heads.predictor.cls.weight"])
+    # align_only keeps the teacher's predictor frozen; the others train their own.
+    assert same == (ablation == "align_only")
+    assert ("train_align" in history[0]) == (ablation != "none")
+
+
+def test_student_loss_weights():
+    torch.manual_seed(0)
+    batch = {"masks": torch.rand(2, 25, 8, 8), "valid": torch.ones(2, 25), "label": torch.tensor([0, 2]),
+             "target": torch.rand(2, 4), "mask": torch.tensor([[1.0, 1, 0, 0], [0, 0, 0, 1]]), "z_t": torch.randn(2, 8)}
+    z = torch.randn(2, 8)
+
+    def model(masks, valid):
+        return {"z": z, "logits": torch.tensor([[2.0, 0, 0], [0, 0, 1.0]]), "params": torch.full((2, 4), 0.5),
+                "params_logvar": torch.zeros(2, 4)}
+
+    losses = {a: student_loss(a, alpha=0.5)(model, batch, True) for a in ABLATIONS}
+    logs = losses["full"][1]
+    align = float(logs["align"])
+    ce, reg = float(logs["ce"]), float(logs["regl1"])
+    cos = torch.nn.functional.cosine_similarity(z, batch["z_t"]).mean().item()
+    assert align == pytest.approx(1 - cos + 0.5 * (z - batch["z_t"]).abs().mean().item(), rel=1e-5)
+    assert float(losses["align_only"][0]) == pytest.approx(align)
+    nll_part = float(losses["none"][0]) - (ce + 0.2 * reg)
+    assert float(losses["full"][0]) == pytest.approx(0.1 * align + ce + 0.2 * reg + nll_part, rel=1e-5)
+
+
+def test_teacher_output_shapes():
+    model = Teacher(TEACHER_PRESETS["tiny"]).eval()
+    out = model(torch.rand(3, 25, 1024, 15))
+    assert out["z"].shape == (3, TEACHER_PRESETS["tiny"].z_dim) and out["logits"].shape == (3, 3)
+    assert ((out["params"] >= 0) & (out["params"] <= 1)).all() and out["params_logvar"].shape == (3, 4)
+
+
+def test_ddp_two_processes_gloo(bags, teacher_ckpt, tmp_path):
+    """torchrun --nproc_per_node=2 -m training student: both ranks train, rank 0 checkpoints."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
+    out = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "training",
+           "student", "--bags", str(bags), "--cache", str(tmp_path / "cache"), "--out", str(out), "--size", "tiny",
+           "--epochs", "1", "--batch-size", "4", "--teacher", str(teacher_ckpt), "--device", "cpu", "--no-progress"]
+    result = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    state = torch.load(out / engine.LAST, weights_only=True)
+    assert state["epoch"] == 1
+    # One log line per epoch (rank 0 only).
+    assert result.stdout.count("student[streaming,full] epoch=1") + result.stderr.count(
+        "student[streaming,full] epoch=1") == 1

@@ -1,0 +1,108 @@
+"""training.data: real MCAP bags (written by ad_sim's own writer and message code) -> cache."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ad_sim import messages
+from ad_sim.generate import write_episodes
+from ad_sim.materials import FAMILIES, PARAMETER_NAMES, normalise
+from ad_sim.rosbag import BagWriter, qos_profile
+from training import data
+from training.synthetic import synthetic_episode, write_synthetic_bag
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bags")
+    write_synthetic_bag(root / "a", 4, views=2, seed=3)
+    write_synthetic_bag(root / "b", 2, views=1, seed=3, first=4)
+    return root
+
+
+def test_instances_labels_and_arrays_match_what_was_written(bags, tmp_path):
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    assert len(ds) == 6 and ds.num_videos == 4 * 2 + 2
+    written = [synthetic_episode(i, 3, 2 if i < 4 else 1) for i in range(6)]
+    assert ds.episode_ids == [e.instance.episode_id for e in written]
+    for i, ep in enumerate(written):
+        family = ep.instance.material
+        assert ds.labels[i] == FAMILIES.index(family)
+        for j, name in enumerate(PARAMETER_NAMES):
+            if name in ep.instance.parameters:
+                assert ds.params_si[i, j] == pytest.approx(ep.instance.parameters[name])
+            else:
+                assert np.isnan(ds.params_si[i, j])
+        # Sand's E and nu are fixed: only its friction angle is a target.
+        expected_mask = {"jelly": [1, 1, 0, 0], "plasticine": [1, 1, 1, 0], "sand": [0, 0, 0, 1]}[family]
+        np.testing.assert_array_equal(ds.param_mask[i], expected_mask)
+        for j, name in enumerate(PARAMETER_NAMES):
+            if expected_mask[j]:
+                assert ds.params_norm[i, j] == pytest.approx(normalise(name, ep.instance.parameters[name]), abs=1e-6)
+        traj = ds.trajectory(i)
+        assert traj.shape == (25, 1024, 15) and traj.dtype == np.float32
+        np.testing.assert_allclose(traj[..., :3], ep.positions, atol=1e-3)  # float16 cache
+        np.testing.assert_allclose(traj[..., 6:], ep.deformation.reshape(25, 1024, 9), atol=2e-3)
+        # Displacements are scaled so that their median magnitude over frames 1..24 is 1.
+        raw = np.diff(ep.positions, axis=0)
+        median = np.median(np.linalg.norm(raw, axis=-1))
+        np.testing.assert_allclose(traj[1:, :, 3:6], raw / median, atol=2e-2, rtol=2e-3)
+        assert np.median(np.linalg.norm(traj[1:, :, 3:6], axis=-1)) == pytest.approx(1.0, abs=1e-2)
+        assert not traj[0, :, 3:6].any()
+        for view in range(ep.masks.shape[0]):
+            (j,) = np.flatnonzero((ds.video_instance == i) & (ds.video_view == view))
+            np.testing.assert_array_equal(ds.video(j), ep.masks[view])
+
+
+def test_cache_is_reused_and_keyed_by_content(bags, tmp_path, monkeypatch):
+    cache = tmp_path / "cache"
+    first = data.load_dataset(bags, cache, progress=False)
+    monkeypatch.setattr(data, "read_bag", lambda bag: pytest.fail(f"re-decoded cached bag {bag}"))
+    again = data.load_dataset(bags, cache, progress=False)
+    assert again.shards == first.shards
+    keys = {data.bag_key(b) for b in data.find_bags(bags)}
+    assert len(keys) == 2
+    other = write_synthetic_bag(tmp_path / "other", 4, views=2, seed=4)
+    assert data.bag_key(other) not in keys
+
+
+def test_incomplete_episodes_are_skipped(tmp_path):
+    """A recording that lost frames of one episode keeps the complete ones."""
+    episodes = [synthetic_episode(i, 0, 1) for i in range(3)]
+    writer = BagWriter(tmp_path / "bag")
+    types = messages.topic_types(1)
+    for index, ep in enumerate(episodes):
+        for topic, stamp, msg in messages.episode_messages(ep, index):
+            if index == 1 and topic == messages.particles_topic() and stamp > messages.frame_stamp(1, 20):
+                continue  # episode 1 lost its last particle frames
+            if not writer.has_topic(topic):
+                writer.add_topic(topic, types[topic], [qos_profile(**messages.topic_qos(topic))])
+            writer.write(topic, stamp, msg)
+    writer.close()
+    ds = data.load_dataset(tmp_path / "bag", tmp_path / "cache", progress=False)
+    assert ds.episode_ids == [episodes[0].instance.episode_id, episodes[2].instance.episode_id]
+
+
+def test_missing_bags_error_says_what_to_do(tmp_path):
+    with pytest.raises(FileNotFoundError, match="ad_sim.generate"):
+        data.find_bags(tmp_path)
+
+
+def test_split_is_deterministic_and_disjoint():
+    train, val = data.split_instances(50, 0.2, seed=7)
+    again = data.split_instances(50, 0.2, seed=7)
+    np.testing.assert_array_equal(train, again[0])
+    assert len(val) == 10 and not set(train) & set(val) and len(train) + len(val) == 50
+    assert not np.array_equal(val, data.split_instances(50, 0.2, seed=8)[1])
+
+
+def test_resized_videos_are_area_averaged(bags, tmp_path):
+    import cv2
+
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    frames = data.resized_videos(ds, (32, 32))
+    s, r = ds.video_loc[3]
+    video = ds.video(3)
+    expected = np.stack([cv2.resize(f, (32, 32), interpolation=cv2.INTER_AREA) for f in video]) / 255.0
+    np.testing.assert_allclose(np.asarray(frames[s][r], np.float32), expected, atol=1e-3)
+    assert (tmp_path / "cache" / ds.shards[s].name / "videos_32x32.npy").exists()
