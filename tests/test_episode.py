@@ -1,5 +1,10 @@
 """End to end: instances -> real Warp MPM -> tracked particles and rendered masks."""
 
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -81,3 +86,18 @@ def test_views_override_keeps_the_seeded_cameras(episodes):
     sphere = instances()[0]
     for camera, seeded in zip(episodes[0].cameras, sphere.cameras(3)):
         np.testing.assert_array_equal(camera.pose, seeded.pose)
+
+
+def test_preview_contact_sheet(episodes, tmp_path):
+    script = Path(__file__).resolve().parents[1] / "scripts" / "preview_episode.py"
+    spec = importlib.util.spec_from_file_location("preview_episode", script)
+    preview = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(preview)
+    sheet = preview.contact_sheet(episodes[0])
+    views = episodes[0].instance.views
+    assert sheet.shape == (preview.HEADER + views * (128 + preview.GAP), FRAMES * (128 + preview.GAP))
+    # Tile (view 1, frame 2) holds that mask.
+    y, x = preview.HEADER + 128 + preview.GAP, 2 * (128 + preview.GAP)
+    np.testing.assert_array_equal(sheet[y : y + 128, x : x + 128], episodes[0].masks[1, 2])
+    help_text = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, check=True).stdout
+    assert "--instances" in help_text and "--output" in help_text
