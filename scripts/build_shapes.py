@@ -27,7 +27,12 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import fast_simplification
+import igl
+import manifold3d
 import numpy as np
+import trimesh
+from tqdm import tqdm
 
 REPO = Path(__file__).resolve().parents[1]
 SHAPES_DIR = REPO / "ros_ws/src/ad_sim/ad_sim/data/shapes"
@@ -191,7 +196,6 @@ def read_member(archive: Path, path: str) -> bytes:
 
 # ----------------------------------------------------------------------------- closing
 def load_part(data: bytes, path: str):
-    import trimesh
 
     file_type = path.rsplit(".", 1)[-1].lower()
     loaded = trimesh.load(io.BytesIO(data), file_type=file_type, force="mesh", process=True)
@@ -200,7 +204,6 @@ def load_part(data: bytes, path: str):
 
 
 def to_manifold(mesh):
-    import manifold3d
 
     m = manifold3d.Manifold(manifold3d.Mesh(vert_properties=np.asarray(mesh.vertices, np.float32),
                                             tri_verts=np.asarray(mesh.faces, np.uint32)))
@@ -210,7 +213,6 @@ def to_manifold(mesh):
 
 
 def from_manifold(m):
-    import trimesh
 
     out = m.to_mesh()
     # process=False: manifold3d already shares vertices; merging by position could pinch the surface
@@ -219,7 +221,6 @@ def from_manifold(m):
 
 def close_union(parts):
     """Union of the closed bodies of all parts (manifold3d)."""
-    import manifold3d
 
     bodies = [to_manifold(b) for p in parts for b in p.split(only_watertight=False)]
     return from_manifold(manifold3d.Manifold.batch_boolean(bodies, manifold3d.OpType.Add))
@@ -227,7 +228,6 @@ def close_union(parts):
 
 def close_stitch(mesh):
     """Cap the open boundary loops (an open underside) with fans."""
-    import trimesh
 
     caps = trimesh.repair.stitch(mesh)
     closed = trimesh.Trimesh(mesh.vertices, np.vstack([mesh.faces, caps]), process=True)
@@ -238,8 +238,6 @@ def close_stitch(mesh):
 
 def close_fill(parts, resolution: int = FILL_RESOLUTION):
     """Solidify a triangle soup: generalized winding number on a grid, iso 0.5, marching cubes."""
-    import igl
-    import trimesh
 
     soup = trimesh.util.concatenate(parts)
     lo, hi = soup.bounds
@@ -277,8 +275,6 @@ def simplify(mesh, max_faces: int = MAX_FACES):
     Quadric decimation (fast-simplification) first, more aggressive if its result is not
     closed; then manifold3d's own simplification, which cannot break manifoldness.
     """
-    import fast_simplification
-    import trimesh
 
     if len(mesh.faces) <= max_faces:
         return mesh
@@ -309,7 +305,6 @@ UP_TO_Z = {
 
 def normalise(mesh, up: str = "z"):
     """Rotate `up` onto +z, centre the bounding box at the origin, longest side 1, outward normals."""
-    import trimesh
 
     out = mesh.copy()
     transform = np.eye(4)
@@ -327,14 +322,10 @@ def normalise(mesh, up: str = "z"):
 def process_everyday(entry: Everyday, archive: Path):
     parts = [load_part(read_member(archive, p), p) for p in entry.paths]
     if entry.method == "as-is":
-        import trimesh
-
         mesh = trimesh.util.concatenate(parts)
     elif entry.method == "union":
         mesh = close_union(parts)
     elif entry.method == "stitch":
-        import trimesh
-
         mesh = close_stitch(trimesh.util.concatenate(parts))
     elif entry.method == "fill":
         mesh = close_fill(parts)
@@ -350,7 +341,6 @@ def process_everyday(entry: Everyday, archive: Path):
 # Every synthetic shape is at least ~0.15 of its longest side thick, so that it survives
 # particle sampling at spacing 1/64 after scaling to ~0.35 of the unit cube.
 def _extrude(points, height: float):
-    import manifold3d
 
     return manifold3d.CrossSection([np.asarray(points, float)]).extrude(height).translate((0, 0, -height / 2))
 
@@ -368,7 +358,6 @@ def _corners(size, inset: float):
 
 def synthetic_shapes() -> dict[str, tuple[str, object]]:
     """name -> (description, manifold3d.Manifold) for the 25 synthetic shapes."""
-    import manifold3d
 
     M, CS = manifold3d.Manifold, manifold3d.CrossSection
     add, sub = manifold3d.OpType.Add, manifold3d.OpType.Subtract
@@ -532,8 +521,6 @@ side is 1 (it fits [-0.5, 0.5]^3), with outward normals. Files are gzipped binar
 
 # ----------------------------------------------------------------------------- build / verify
 def build(cache: Path, shapes_dir: Path = SHAPES_DIR) -> None:
-    from tqdm import tqdm
-
     synthetic = synthetic_shapes()
     jobs = [(name, "synthetic") for name in synthetic] + [(e.name, "everyday") for e in EVERYDAY]
     meshes, records = {}, []
