@@ -79,7 +79,7 @@ def load_mesh(name: str) -> trimesh.Trimesh:
     return _mesh(name).copy()
 
 
-@lru_cache(maxsize=512)
+@lru_cache(maxsize=256)  # ~10k points (120 kB) each at the simulator's spacing
 def _lattice_inside(name: str, spacing: float, scale: float) -> np.ndarray:
     """Cell-centred lattice points at `spacing` inside the mesh scaled by `scale` (read-only)."""
     import igl
