@@ -7,7 +7,18 @@ import pytest
 import warp as wp
 
 from ad_sim.materials import FAMILY_RANGES, FRAME_INTERVAL, lame
-from ad_sim.mpm import CLAMP_HI, CLAMP_LO, COURANT, DX, Scene, group_by_substeps, simulate, substeps_for
+from ad_sim.mpm import (
+    CLAMP_HI,
+    CLAMP_LO,
+    COURANT,
+    DX,
+    GROUND_Z,
+    Scene,
+    group_by_substeps,
+    scene_speed_bound,
+    simulate,
+    substeps_for,
+)
 
 wp.config.quiet = True
 SPACING = DX / 2  # 8 particles per grid cell
@@ -41,13 +52,18 @@ def height(points):
 def test_substeps_follow_wave_speed_and_groups_sort():
     mu, lam = lame(1.5e6, 0.4)
     wave = math.sqrt((lam + 2 * mu) / 1000.0)
-    n = substeps_for("jelly", {"youngs_modulus": 1.5e6, "poissons_ratio": 0.4})
-    dt = FRAME_INTERVAL / n
-    assert dt * (wave + math.sqrt(2 * 9.8)) / DX <= COURANT + 1e-9
-    assert FRAME_INTERVAL / (n - 1) * (wave + math.sqrt(2 * 9.8)) / DX > COURANT
-    soft = substeps_for("jelly", {"youngs_modulus": 1.5e4, "poissons_ratio": 0.2})
+    for speed in (0.0, 3.0):
+        n = substeps_for("jelly", {"youngs_modulus": 1.5e6, "poissons_ratio": 0.4}, speed=speed)
+        # n is the smallest substep count whose dt meets the Courant condition.
+        assert FRAME_INTERVAL / n * (wave + speed) / DX <= COURANT + 1e-9
+        assert FRAME_INTERVAL / (n - 1) * (wave + speed) / DX > COURANT
+    soft = substeps_for("jelly", {"youngs_modulus": 1.5e4, "poissons_ratio": 0.2}, speed=0.0)
     assert soft < n / 4
     assert substeps_for("jelly", {"youngs_modulus": 1.5e4, "poissons_ratio": 0.2}, speed=5.0) > soft
+    # A scene's speed bound: initial speed plus free fall from its highest particle to the ground.
+    high = scene(box((0.5, 0.5, 0.7), (0.1, 0.1, 0.1)), "sand", {"friction_angle": 0.5}, velocity=(3.0, 0.0, 0.0))
+    drop = high.positions[:, 2].max() - GROUND_Z
+    assert scene_speed_bound(high) == pytest.approx(math.sqrt(9.0 + 2 * 9.8 * drop), rel=1e-6)
     pts = box((0.5, 0.5, 0.3), (0.1, 0.1, 0.1))
     scenes = [scene(pts, "jelly", {"youngs_modulus": E, "poissons_ratio": 0.3}) for E in (1e6, 2e4, 3e5, 5e4, 1e5)]
     groups = group_by_substeps(scenes, 2)
