@@ -85,7 +85,7 @@ class Listener:
             if instance is not None:
                 self.pending.remove(estimate)
                 self.rows.append((instance, estimate))
-                print(f"{instance.episode_id:34s} {instance.shape:14s} | {truth_text(instance):48s} | "
+                print(f"{instance.episode_id:34s} {instance.shape:14s} | {truth_text(instance):54s} | "
                       f"{estimate_text(estimate, list(instance.parameter_names))}  "
                       f"[{estimate.frames_used} frames, {estimate.inference_time * 1e3:.2f} ms]", flush=True)
 
@@ -171,7 +171,7 @@ def main(argv=None) -> int:
               f"{args.real_time_factor}); logs in {args.logs}", flush=True)
         simulator = start("ad_sim", "node", "--ros-args", "-p", f"size:={args.size}", "-p", f"split:={args.split}",
                           "-p", f"real_time_factor:={args.real_time_factor}", log_path=args.logs / "simulator.log")
-        print(f"{'episode':34s} {'shape':14s} | {'ground truth':48s} | estimate", flush=True)
+        print(f"{'episode':34s} {'shape':14s} | {'ground truth':54s} | estimate", flush=True)
         while len(listener.rows) < args.episodes:
             if time.monotonic() > deadline:
                 raise RuntimeError(f"timed out after {args.timeout:.0f} s with {len(listener.rows)} estimates")
