@@ -5,6 +5,7 @@ import pytest
 import trimesh
 
 from ad_sim import render
+from ad_sim.instances import BOUNDARY
 from ad_sim.render import Camera, RenderJob, intrinsics, look_at
 
 FULL = render.FULL_SIZE
@@ -91,8 +92,12 @@ def test_sampled_cameras_look_at_the_drop_region():
     target = np.array(render.CAMERA_TARGET)
     directions = np.random.default_rng(6).normal(size=(200, 3))
     sphere = target + 0.98 * render.VIEW_RADIUS * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    # Sand spreads to the walls: the floor's corners (ground boundary layer) stay in view.
+    low, high = BOUNDARY, 1 - BOUNDARY
+    floor = np.array([[x, y, BOUNDARY] for x in (low, high) for y in (low, high)])
     for camera in cameras:
         np.testing.assert_allclose(camera.pose[:3, :3] @ camera.pose[:3, :3].T, np.eye(3), atol=1e-12)
+        assert np.all((camera.project(floor) >= -0.5) & (camera.project(floor) <= 127.5))
         np.testing.assert_allclose(camera.project(target[None]), [[63.5, 63.5]], atol=1e-9)
         pixels = camera.project(sphere)
         assert np.all((pixels >= -0.5) & (pixels <= 127.5))

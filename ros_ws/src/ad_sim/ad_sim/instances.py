@@ -153,9 +153,9 @@ class BenchmarkSize:
 
 # paper: SPEC 7 (9000 / 900 / 900). tiny: 6 episodes per split (2 shapes x 3 families), CI.
 # small: 360 / 90 / 90 on all 60 shapes (4 training instances per (shape, family), one in each
-# test split). On CPU an episode takes ~2.5 s (one core, measured over the small unseen split),
-# so small's 540 episodes generate in ~25 min on one core and a student trains on them on 2 CPU
-# cores within the hour.
+# test split). On CPU an episode takes 2.5-6 s (one core, 25 frames, measured on small's splits),
+# so small's 540 episodes generate in ~40 min on one core (two shards: ~20 min) and a student
+# trains on them on 2 CPU cores within the hour.
 BENCHMARK_SIZES = {
     "paper": BenchmarkSize({"train": 100, "seen": 10, "unseen": 10}, None),
     "small": BenchmarkSize({"train": 4, "seen": 1, "unseen": 1}, None),

@@ -28,9 +28,10 @@ BIND_NEIGHBOURS = 4
 
 # Cameras look at the region where objects fall and land (the domain is the unit cube,
 # z up, ground boundary at z ~ 0.09). A sphere of VIEW_RADIUS around CAMERA_TARGET is kept
-# inside the field of view: it holds every drop pose and the floor but for its far corners.
+# inside the field of view: it holds every drop pose and the whole floor between the walls
+# (sand spreads wall to wall).
 CAMERA_TARGET = (0.5, 0.5, 0.35)
-VIEW_RADIUS = 0.6
+VIEW_RADIUS = 0.65
 CAMERA_DISTANCE = (1.5, 2.0)
 CAMERA_ELEVATION_DEG = (10.0, 45.0)
 
