@@ -40,8 +40,13 @@ def transform_trajectory(traj: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 class TrajectorySet(TorchDataset):
-    def __init__(self, ds: data.Dataset, instances: np.ndarray, augment: bool, seed: int):
+    """Trajectories with labels and each instance's point tubes (anchors and neighbours at t=0,
+    computed once: they depend only on the first frame, and the square symmetries keep them)."""
+
+    def __init__(self, ds: data.Dataset, instances: np.ndarray, augment: bool, seed: int, teacher: Teacher):
         self.ds, self.instances, self.augment, self.seed, self.epoch = ds, instances, augment, seed, 0
+        self.teacher = teacher
+        self._tubes: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
@@ -52,15 +57,19 @@ class TrajectorySet(TorchDataset):
     def __getitem__(self, k: int) -> dict:
         i = int(self.instances[k])
         traj = self.ds.trajectory(i)
+        if i not in self._tubes:
+            anchors, neighbours = self.teacher.tubes(torch.from_numpy(traj[None, :1]))
+            self._tubes[i] = (anchors[0], neighbours[0])
         if self.augment:
             sym = np.random.default_rng([self.seed, self.epoch, i]).integers(len(SYMMETRIES))
             traj = transform_trajectory(traj, SYMMETRIES[sym])
-        return {"trajectory": torch.from_numpy(traj), "label": torch.tensor(self.ds.labels[i]),
+        return {"trajectory": torch.from_numpy(traj), "anchors": self._tubes[i][0], "neighbours": self._tubes[i][1],
+                "label": torch.tensor(self.ds.labels[i]),
                 "target": torch.from_numpy(self.ds.params_norm[i]), "mask": torch.from_numpy(self.ds.param_mask[i])}
 
 
 def teacher_loss(model, batch, train: bool):
-    out = model(batch["trajectory"])
+    out = model(batch["trajectory"], batch["anchors"], batch["neighbours"])
     loss, logs = task_loss(out, batch["label"], batch["target"], batch["mask"])
     logs["acc"] = (out["logits"].argmax(-1) == batch["label"]).float().mean()
     logs["score"] = logs["ce"] + logs["regl1"]
@@ -128,7 +137,8 @@ def run(args) -> Path:
     config = TEACHER_PRESETS[args.size]
     model = Teacher(config).to(rt.device)
     out = Path(args.out)
-    fit(model, TrajectorySet(ds, train_idx, True, args.seed), TrajectorySet(ds, val_idx, False, args.seed),
+    fit(model, TrajectorySet(ds, train_idx, True, args.seed, model),
+        TrajectorySet(ds, val_idx, False, args.seed, model),
         teacher_loss, out, fit_config(args), rt, meta={"config": config.to_dict(), "size": args.size},
         desc="teacher")
     return out / BEST

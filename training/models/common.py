@@ -13,14 +13,13 @@ NUM_PARAMS = 4
 
 
 class Attention(nn.Module):
-    def __init__(self, dim: int, heads: int, dropout: float = 0.0):
+    def __init__(self, dim: int, heads: int):
         super().__init__()
         if dim % heads:
             raise ValueError(f"width {dim} is not divisible by {heads} heads")
         self.heads, self.scale = heads, 1.0 / math.sqrt(dim // heads)
         self.qkv = nn.Linear(dim, 3 * dim)
         self.out = nn.Linear(dim, dim)
-        self.drop = nn.Dropout(dropout)
 
     def forward(self, x: torch.Tensor, key_bias: torch.Tensor | None = None) -> torch.Tensor:
         b, n, d = x.shape
@@ -28,7 +27,7 @@ class Attention(nn.Module):
         scores = (q @ k.transpose(-2, -1)) * self.scale
         if key_bias is not None:  # (B, N): 0 for valid keys, large negative for padding
             scores = scores + key_bias[:, None, None, :]
-        attn = self.drop(scores.softmax(dim=-1))
+        attn = scores.softmax(dim=-1)
         return self.out((attn @ v).transpose(1, 2).reshape(b, n, d))
 
 
@@ -38,7 +37,7 @@ class Block(nn.Module):
     def __init__(self, dim: int, heads: int, mlp_ratio: float = 4.0, dropout: float = 0.0):
         super().__init__()
         self.norm1, self.norm2 = nn.LayerNorm(dim), nn.LayerNorm(dim)
-        self.attn = Attention(dim, heads, dropout)
+        self.attn = Attention(dim, heads)
         hidden = int(dim * mlp_ratio)
         self.mlp = nn.Sequential(nn.Linear(dim, hidden), nn.GELU(), nn.Dropout(dropout), nn.Linear(hidden, dim))
 

@@ -128,8 +128,10 @@ class StreamingStudent(nn.Module):
     def forward(self, masks: torch.Tensor, valid: torch.Tensor) -> dict[str, torch.Tensor]:
         """masks (B, T, H, W) in [0, 1], valid (B, T)."""
         b, t, h, w = masks.shape
-        emb = self.frame_encoder(masks.reshape(b * t, 1, h, w)).reshape(b, t, -1)
-        return self.temporal(emb, valid)
+        keep = valid.reshape(-1) > 0  # unobserved frames are never encoded (their embedding is zeroed anyway)
+        encoded = self.frame_encoder(masks.reshape(b * t, 1, h, w)[keep])
+        emb = encoded.new_zeros(b * t, encoded.shape[-1]).index_copy(0, keep.nonzero()[:, 0], encoded)
+        return self.temporal(emb.reshape(b, t, -1), valid)
 
 
 class LocalMHRA(nn.Module):

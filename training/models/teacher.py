@@ -79,6 +79,7 @@ class Teacher(nn.Module):
         self.transformer = Transformer(c.width, c.depth, c.heads, c.dropout)
         self.heads = Heads(2 * c.width, c.width, c.z_dim)
 
+    @torch.no_grad()
     def tubes(self, traj: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Anchor indices (B, A) and neighbour indices (B, A, k), both found at t=0."""
         c = self.config
@@ -88,10 +89,13 @@ class Teacher(nn.Module):
         neighbours = torch.cdist(centres, p0).topk(c.neighbours, dim=-1, largest=False).indices
         return anchors, neighbours
 
-    def forward(self, traj: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, traj: torch.Tensor, anchors: torch.Tensor | None = None,
+                neighbours: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """anchors (B, A) and neighbours (B, A, k) may be given (precomputed by `tubes`)."""
         c = self.config
         b, t = traj.shape[:2]
-        anchors, neighbours = self.tubes(traj)
+        if anchors is None or neighbours is None:
+            anchors, neighbours = self.tubes(traj)
         identity = torch.eye(3, device=traj.device, dtype=traj.dtype).reshape(9)
         centre = _gather(traj[..., :3], anchors)  # (B, T, A, 3)
         nb = _gather(traj, neighbours)  # (B, T, A, k, 15)
