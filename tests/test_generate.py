@@ -108,3 +108,30 @@ def test_instance_file_one_shard_and_skip_particles(tmp_path):
     masks = episodes[0].messages["/ad_sim/view_1/mask"]
     assert [stamp for stamp, _ in masks] == [messages.frame_stamp(0, t) for t in range(25)]
     assert all(set(m.data) <= {0, 255} for _, m in masks) and any(255 in m.data for _, m in masks)
+
+
+def test_committed_sample_bags():
+    """bags/samples: unseen shapes, every family, one view, 25 frames, small (bags/README.md)."""
+    from ad_sim.instances import benchmark_shapes
+    from ad_sim.shapes import list_shapes
+
+    samples = REPO_ROOT / "bags" / "samples"
+    bags = sorted(p for p in samples.iterdir() if (p / "metadata.yaml").is_file())
+    assert [b.name for b in bags] == ["unseen-masks-0of1", "unseen-particles-0of1"]
+    assert sum(f.stat().st_size for b in bags for f in b.iterdir()) < 3.2e6
+    unseen = {info.name for info in list_shapes("unseen")}
+    families = set()
+    for bag in bags:
+        assert (bag / DONE_MARKER).is_file()
+        episodes = list(group_episodes(BagReader(bag)))
+        for episode in episodes:
+            instance = episode.instance
+            assert instance.split == "unseen" and instance.shape in unseen and len(instance.camera_poses) == 1
+            families.add(instance.material)
+            assert len(episode.messages["/ad_sim/view_0/mask"]) == len(episode.messages["/ad_sim/view_0/camera_info"]) == 25
+            if bag.name == "unseen-particles-0of1":
+                clouds = episode.messages["/ad_sim/particles"]
+                assert len(clouds) == 25 and all(c.width == 1024 and c.point_step == 60 for _, c in clouds)
+    assert families == {"jelly", "plasticine", "sand"}
+    masks_bag = [e.instance.shape for e in group_episodes(BagReader(bags[0], topics=["/ad_sim/instance"]))]
+    assert sorted(set(masks_bag)) == sorted(benchmark_shapes("unseen", "tiny")) and len(masks_bag) == 6

@@ -2,7 +2,7 @@
 
 Same content as recording the simulator node's topics (ad_sim.messages is shared), without
 DDS. Output is sharded: shard i of N holds instances i, i+N, i+2N, ... of the list in
-OUT/<name>-<i>of<N>/, a bag folder. A finished shard has a DONE marker and is skipped when the
+OUT/<name>-<i>of<N>/ (name: the split, the instance file's stem or --name), a bag folder. A finished shard has a DONE marker and is skipped when the
 command is run again; a shard without it (a killed run) is deleted and redone.
 Deterministic: the same arguments give byte-identical bags.
 """
@@ -115,6 +115,7 @@ def _parser() -> argparse.ArgumentParser:
     shards = parser.add_mutually_exclusive_group()
     shards.add_argument("--shard", type=parse_shard, help="write only shard i of N, as i/N")
     shards.add_argument("--shards", type=int, default=1, help="write all N shards, one after another (default %(default)s)")
+    parser.add_argument("--name", help="shard folder prefix (default: the split, or the instance file's name)")
     parser.add_argument("--out", type=Path, default=Path("bags"), help="output folder for the shard bag folders (default %(default)s)")
     parser.add_argument("--device", default="cpu", help="Warp device: cpu, cuda or cuda:<n> (default %(default)s)")
     parser.add_argument("--views", type=int, help="cameras per episode (default: 4 for train, 1 otherwise)")
@@ -147,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
             instances, name = benchmark(args.size, args.split, args.seed), args.split
     except (OSError, ValueError) as exc:
         parser.error(str(exc))
+    name = args.name or name
     if args.limit is not None:
         instances = instances[: args.limit]
     if args.views is not None and args.views < 1:
