@@ -129,6 +129,7 @@ class FitConfig:
     seed: int = 0
     grad_clip: float = 1.0
     progress: bool = True
+    amp: bool = False  # bfloat16 autocast on CUDA
     stop_after: int = 0  # >0: return after this many epochs in this call (time-sliced jobs); rerun to go on
 
 
@@ -184,7 +185,8 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
             batch = {k: v.to(rt.device, non_blocking=True) for k, v in batch.items()}
             for group in optimizer.param_groups:
                 group["lr"] = cosine_lr(step, total, cfg.lr, cfg.min_lr, warmup)
-            loss, logs = loss_fn(model, batch, True)
+            with torch.autocast(rt.device.type, dtype=torch.bfloat16, enabled=cfg.amp and rt.device.type == "cuda"):
+                loss, logs = loss_fn(model, batch, True)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(raw.parameters(), cfg.grad_clip)

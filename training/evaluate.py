@@ -7,6 +7,7 @@ evaluation convention), and scores it with ad_estimator.metrics.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,7 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
     if out is None:
         out = Path(model_path).with_suffix("").with_name(Path(model_path).stem + "_eval")
     results = write_report(by_frames, out, title)
+    update_model_metrics(model_path, {"evaluation": {Path(bags).name: summary(results)}})
     table_rows = {k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}
     print(format_table(table_rows, title))
     print(f"report: {Path(out) / 'report.md'}")
@@ -57,9 +59,11 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     p = p or argparse.ArgumentParser(prog="python -m training evaluate")
     p.description = ("Evaluate an exported student (.onnx) on bags: per-family Acc and parameter errors, RegL1, "
-                     "temporal-OOD rows; writes metrics.json, report.md and plots.")
+                     "temporal-OOD rows; writes metrics.json, report.md and plots, and adds the summary to "
+                     "<model>.metrics.json next to the model.")
     p.add_argument("--model", required=True, help="exported student .onnx (for streaming: the temporal head file)")
-    p.add_argument("--bags", required=True, help="evaluation bags (e.g. bags/small/unseen)")
+    p.add_argument("--bags", required=True, help="evaluation bags (e.g. bags/small/unseen); its folder name keys "
+                                                 "the results in <model>.metrics.json")
     p.add_argument("--cache", default=".cache/training", help="array cache folder")
     p.add_argument("--out", help="report folder (default: <model>_eval next to the model)")
     p.add_argument("--title", help="report title")
@@ -70,6 +74,25 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 def run(args) -> dict:
     return evaluate_model(args.model, args.bags, args.cache, args.out, args.title, not args.no_progress)
 
+
+
+def metrics_path(model_path: str | Path) -> Path:
+    """<name>.metrics.json next to <name>.onnx."""
+    model_path = Path(model_path)
+    return model_path.with_name(model_path.name.removesuffix(".onnx") + ".metrics.json")
+
+
+def update_model_metrics(model_path: str | Path, update: dict) -> Path:
+    """Merges `update` into the model's metrics JSON (nested dicts merged one level deep)."""
+    path = metrics_path(model_path)
+    current = json.loads(path.read_text()) if path.exists() else {"model": Path(model_path).name}
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(current.get(key), dict):
+            current[key].update(value)
+        else:
+            current[key] = value
+    path.write_text(json.dumps(current, indent=2))
+    return path
 
 
 def summary(results: dict) -> dict:

@@ -117,6 +117,11 @@ def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None
             meta_all = metadata(model_id, "clip", (h, w), extra)
         _attach(out, meta_all)
     written.append(out)
+    # A fresh export starts a fresh metrics file; `evaluate` adds its results to it.
+    history = Path(checkpoint).with_name("history.json")
+    record = {"model": out.name, "model_id": model_id, "kind": config.kind, "training": meta,
+              "final_epoch": json.loads(history.read_text())[-1] if history.exists() else None}
+    out.with_name(out.name.removesuffix(".onnx") + ".metrics.json").write_text(json.dumps(record, indent=2))
     return written
 
 

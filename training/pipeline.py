@@ -13,7 +13,6 @@ import time
 from argparse import Namespace
 from pathlib import Path
 
-from ad_sim.materials import FRAME_COUNT
 from training import evaluate, export, train_student, train_teacher
 from training.train_student import ABLATIONS
 
@@ -104,17 +103,13 @@ def run(args) -> dict:
             res = evaluate.evaluate_model(onnx_path, bags[split], args.cache, out / "reports" / f"{name}_{split}",
                                           title=f"{name} on {args.size}/{split}", progress=not args.no_progress)
             results[split] = evaluate.summary(res)
-        history = json.loads((out / name / "history.json").read_text())
-        metrics = {"model": onnx_path.name, "kind": args.kind, "ablation": ablation, "size": args.size,
-                   "seed": args.seed, "frame_count": FRAME_COUNT, "onnx_max_abs_error": error,
-                   "final_epoch": history[-1], "evaluation": results}
-        metrics_path = onnx_path.with_name(f"{name}.metrics.json")
-        metrics_path.write_text(json.dumps(metrics, indent=2))
-        summary["students"][ablation] = {"onnx": [str(p) for p in paths], "metrics": str(metrics_path),
-                                         "unseen_regl1": results["unseen"]["full"]["regl1"],
-                                         "unseen_accuracy": results["unseen"]["full"]["accuracy"],
-                                         "seen_regl1": results["seen"]["full"]["regl1"],
-                                         "seen_accuracy": results["seen"]["full"]["accuracy"]}
+        metrics_path = evaluate.update_model_metrics(onnx_path, {
+            "epochs": {"teacher": teacher_epochs, "student": student_epochs}, "onnx_max_abs_error": error,
+            "timings_s": {k: round(v, 1) for k, v in timings.items()}})
+        summary["students"][ablation] = {
+            "onnx": [str(p) for p in paths], "metrics": str(metrics_path),
+            **{f"{split}_{key}": results[split]["full"][key] for split in ("seen", "unseen")
+               for key in ("accuracy", "regl1")}}
         if installed is None or ablation == "full":
             installed = (onnx_path, metrics_path)
     timings["total_s"] = time.time() - started

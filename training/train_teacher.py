@@ -108,6 +108,7 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto", help="auto | cpu | cuda (torchrun: one process per GPU)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch default)")
+    p.add_argument("--amp", action="store_true", help="bfloat16 autocast (CUDA only)")
     p.add_argument("--stop-after", type=int, default=0,
                    help="stop after this many epochs in this run (time-limited sessions); rerun to continue")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -116,7 +117,7 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
 def fit_config(args) -> FitConfig:
     return FitConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, weight_decay=args.weight_decay,
                      min_lr=args.min_lr, seed=args.seed, progress=not args.no_progress,
-                     stop_after=getattr(args, "stop_after", 0))
+                     stop_after=getattr(args, "stop_after", 0), amp=getattr(args, "amp", False))
 
 
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:

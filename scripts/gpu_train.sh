@@ -1,0 +1,70 @@
+#!/usr/bin/env bash
+# The whole GPU training job, given generated bags:
+#   scripts/gpu_train.sh BAGS OUT
+# BAGS holds train/, seen/ and unseen/ (ad_sim.generate output, e.g. bags/paper). Writes teacher,
+# students (ablations none, align_only, full; streaming, plus a UniFormer-style reference),
+# exported ONNX models with <name>.metrics.json and evaluation reports under OUT.
+# Every step resumes: re-running after a kill or a time limit continues from the last epoch.
+#
+# Environment knobs (defaults in brackets):
+#   NPROC [number of GPUs]      processes (one per GPU; >1 runs through torchrun/DDP)
+#   SIZE [paper]                model size preset: tiny | small | paper
+#   TEACHER_EPOCHS [300] STUDENT_EPOCHS [20] BATCH [32] (per process) LR [1e-4]
+#   ABLATIONS ["none align_only full"]  KINDS ["streaming uniformer"]
+#   STOP_AFTER [0]              >0: every training step stops after that many epochs in this run
+#   CACHE [OUT/cache]
+set -euo pipefail
+if [ $# -ne 2 ]; then
+    sed -n '2,17p' "$0"
+    exit 2
+fi
+BAGS=$1
+OUT=$2
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+export PYTHONPATH="$ROOT/ros_ws/src/ad_sim:$ROOT/ros_ws/src/ad_estimator:$ROOT${PYTHONPATH:+:$PYTHONPATH}"
+NPROC=${NPROC:-$(nvidia-smi -L 2>/dev/null | wc -l)}
+NPROC=$(( NPROC > 0 ? NPROC : 1 ))
+SIZE=${SIZE:-paper}
+TEACHER_EPOCHS=${TEACHER_EPOCHS:-300}
+STUDENT_EPOCHS=${STUDENT_EPOCHS:-20}
+BATCH=${BATCH:-32}
+LR=${LR:-1e-4}
+ABLATIONS=${ABLATIONS:-none align_only full}
+KINDS=${KINDS:-streaming uniformer}
+STOP_AFTER=${STOP_AFTER:-0}
+CACHE=${CACHE:-$OUT/cache}
+for split in train seen unseen; do
+    [ -d "$BAGS/$split" ] || { echo "gpu_train.sh: $BAGS/$split missing; generate it with" \
+        "python -m ad_sim.generate --size paper --split $split --out $BAGS/$split --device cuda" >&2; exit 1; }
+done
+if [ "$NPROC" -gt 1 ]; then
+    RUN=(python -m torch.distributed.run --standalone --nproc_per_node="$NPROC" -m training)
+else
+    RUN=(python -m training)
+fi
+COMMON=(--cache "$CACHE" --size "$SIZE" --batch-size "$BATCH" --lr "$LR" --device cuda --amp --stop-after "$STOP_AFTER")
+mkdir -p "$OUT"
+
+echo "==> cache ($BAGS)"
+for split in train seen unseen; do python -m training cache --bags "$BAGS/$split" --cache "$CACHE"; done
+
+echo "==> teacher ($NPROC process(es), $TEACHER_EPOCHS epochs)"
+"${RUN[@]}" teacher --bags "$BAGS/train" --out "$OUT/teacher" --epochs "$TEACHER_EPOCHS" "${COMMON[@]}"
+
+for kind in $KINDS; do
+    for ablation in $ABLATIONS; do
+        # The UniFormer-style reference is trained in the full setting only.
+        [ "$kind" = uniformer ] && [ "$ablation" != full ] && continue
+        name="${kind}_${ablation}"
+        echo "==> student $name ($STUDENT_EPOCHS epochs)"
+        "${RUN[@]}" student --bags "$BAGS/train" --out "$OUT/$name" --epochs "$STUDENT_EPOCHS" \
+            --teacher "$OUT/teacher/best.pt" --kind "$kind" --ablation "$ablation" "${COMMON[@]}"
+        python -m training export --checkpoint "$OUT/$name/best.pt" --out "$OUT/models/$name.onnx"
+        for split in seen unseen; do
+            python -m training evaluate --model "$OUT/models/$name.onnx" --bags "$BAGS/$split" --cache "$CACHE" \
+                --out "$OUT/reports/${name}_$split" --title "$name on $split" --no-progress
+        done
+    done
+done
+echo "==> done: models in $OUT/models, reports in $OUT/reports"
