@@ -146,6 +146,11 @@ def _columns() -> list[tuple[str, str, str | None]]:
     return cols
 
 
+def _cell(value: float) -> str:
+    """A table cell; n/a where no clip qualified (e.g. no correctly classified clip of a family)."""
+    return "n/a" if math.isnan(value) else f"{value:.3f}"
+
+
 def format_table(results: dict, title: str = "", which: str = "correct") -> str:
     """The paper's table layout as Markdown: one row per number of observed frames (the
     full clip first, then the temporal-OOD rows). `which` is "correct" (paper) or "all"."""
@@ -162,8 +167,8 @@ def format_table(results: dict, title: str = "", which: str = "correct") -> str:
         row = [str(k)]
         for family, _, name in cols:
             fam = m["families"][family]
-            row.append(f"{fam['acc']:.3f}" if name is None else f"{fam[which][name]:.3f}")
-        row.append(f"{m['regl1']:.3f}")
+            row.append(_cell(fam["acc"] if name is None else fam[which][name]))
+        row.append(_cell(m["regl1"]))
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines)
 
