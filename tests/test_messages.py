@@ -8,13 +8,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap_ros2._dynamic import generate_dynamic as deserialize_dynamic
 from mcap_ros2._dynamic import serialize_dynamic
-from rclpy.serialization import serialize_message
 from sim_fixtures import as_plain, fabricated_episode
 
 from ad_sim import materials, messages
 from ad_sim.instances import quaternion_matrix
 from ad_sim.rosbag import load_schema
-from ad_sim.sim_node import to_ros_message
 
 
 def test_frame_stamps_follow_the_contract():
@@ -101,9 +99,14 @@ def test_episode_messages_order_and_instance_content():
     assert stamps == [messages.frame_stamp(3, f) for f in range(25)]
 
 
+@pytest.mark.ros
 def test_rclpy_messages_serialise_to_what_generate_writes():
     """The node's rclpy messages and generate's encoded dicts are the same CDR content
     (Fast-CDR leaves alignment padding uninitialised, so compare decoded, and sizes)."""
+    from rclpy.serialization import serialize_message
+
+    from ad_sim.sim_node import to_ros_message
+
     episode = fabricated_episode(6, views=1)
     seen = set()
     for topic, _, data in messages.episode_messages(episode, 1):
@@ -120,6 +123,9 @@ def test_rclpy_messages_serialise_to_what_generate_writes():
     assert seen == {messages.INSTANCE_TYPE, messages.IMAGE_TYPE, messages.CAMERA_INFO_TYPE, messages.POINT_CLOUD_TYPE}
 
 
+@pytest.mark.ros
 def test_node_conversion_rejects_unknown_fields():
+    from ad_sim.sim_node import to_ros_message
+
     with pytest.raises(AttributeError):
         to_ros_message(messages.IMAGE_TYPE, {"no_such_field": 1})

@@ -111,21 +111,35 @@ def test_sigterm_finalises_and_kill9_keeps_flushed_chunks(rclpy_context, ros_dom
 
 
 def test_recorder_records_only_the_topics_asked_for(rclpy_context, ros_domain_id, tmp_path):
+    """An explicit topic list, including a foreign type without header (log time = receive time)."""
+    from std_msgs.msg import String
+
     items = episode_items(count=1)
     publisher = Publisher(rclpy_context)
+    chatter = publisher.node.create_publisher(String, "/chatter", 10)
     try:
-        recorder = start("record", ros_domain_id, tmp_path / "r.log", output=str(tmp_path / "some"), topics=["/ad_sim/instance", "/ad_sim/particles"])
-        wait_for_log(tmp_path / "r.log", r"subscribed to /ad_sim/particles", recorder)
-        wait_for_log(tmp_path / "r.log", r"subscribed to /ad_sim/instance", recorder)
+        topics = ["/ad_sim/instance", "/ad_sim/particles", "/chatter"]
+        recorder = start("record", ros_domain_id, tmp_path / "r.log", output=str(tmp_path / "some"), topics=topics)
+        for topic in topics:
+            wait_for_log(tmp_path / "r.log", rf"subscribed to {topic} ", recorder)
         deadline = time.monotonic() + 30
-        while publisher.sim.by_topic["/ad_sim/particles"][1].get_subscription_count() < 1:
+        while chatter.get_subscription_count() < 1 or publisher.sim.by_topic["/ad_sim/particles"][1].get_subscription_count() < 1:
             assert time.monotonic() < deadline
             time.sleep(0.05)
+        before = time.time_ns()
         publisher.publish(items)
+        chatter.publish(String(data="hello"))
         publisher.sim.wait_for_acks(["/ad_sim/instance", "/ad_sim/particles"])
+        assert chatter.wait_for_all_acked()
         time.sleep(0.3)
         assert stop(recorder) == 0
     finally:
         publisher.close()
-    assert BagReader(tmp_path / "some").topics() == {"/ad_sim/instance": messages.INSTANCE_TYPE, "/ad_sim/particles": messages.POINT_CLOUD_TYPE}
-    assert len(list(BagReader(tmp_path / "some"))) == 1 + 25
+    reader = BagReader(tmp_path / "some")
+    assert reader.topics() == {
+        "/ad_sim/instance": messages.INSTANCE_TYPE, "/ad_sim/particles": messages.POINT_CLOUD_TYPE, "/chatter": "std_msgs/msg/String",
+    }
+    read = list(reader)
+    assert len(read) == 1 + 25 + 1
+    hello = [m for m in read if m.topic == "/chatter"]
+    assert hello[0].message.data == "hello" and hello[0].log_time_ns >= before

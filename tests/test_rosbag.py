@@ -39,7 +39,9 @@ def bag(tmp_path_factory) -> tuple[Path, list]:
     return path, write_fabricated_bag(path, episodes=2, views=2)
 
 
+@pytest.mark.ros
 def test_vendored_schemas_equal_installed_interfaces():
+    """ad_sim/data/schemas (python -m ad_sim.rosbag vendor-schemas) equal the built interfaces."""
     for type_name in rosbag.VENDORED_TYPES:
         vendored = rosbag.load_schema(type_name)
         assert vendored.definition == rosbag.build_message_definition(type_name)

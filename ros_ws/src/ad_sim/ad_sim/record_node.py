@@ -18,7 +18,9 @@ from datetime import datetime, timezone
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
@@ -52,7 +54,7 @@ class RecordNode(Node):
         super().__init__("ad_sim_record")
         p = self.declare_parameter
         p("output", "")  # bag folder; empty: bags/record-<UTC time>
-        p("topics", [""])  # topics to record; empty: every simulator topic under topic_prefix
+        p("topics", Parameter.Type.STRING_ARRAY)  # topics to record; unset: every simulator topic under topic_prefix
         p("topic_prefix", messages.DEFAULT_PREFIX)
         p("max_bag_size", 0)  # bytes per .mcap file, 0: never split
         p("compression", "zstd")  # zstd | lz4 | none (chunk compression)
@@ -61,7 +63,10 @@ class RecordNode(Node):
         p("flush_period", 1.0)  # s between chunk flushes (bounds what a kill -9 loses)
         get = lambda name: self.get_parameter(name).value  # noqa: E731
         output = get("output") or f"bags/record-{datetime.now(timezone.utc):%Y%m%d-%H%M%S}"
-        self.wanted = {t for t in get("topics") if t}
+        try:
+            self.wanted = {t for t in get("topics") if t}
+        except ParameterUninitializedException:
+            self.wanted = set()
         self.prefix = get("topic_prefix").rstrip("/")
         self.stamp_source = get("stamp_source")
         if self.stamp_source not in ("header", "receive"):
@@ -70,6 +75,7 @@ class RecordNode(Node):
         self.received: dict[str, int] = {}
         self.written: dict[str, int] = {}
         self.subscriptions_by_topic = {}
+        self.unrecordable: set[str] = set()
         self._unflushed = False
         self.create_timer(get("discovery_period"), self.discover)
         self.create_timer(get("flush_period"), self.flush)
@@ -82,12 +88,16 @@ class RecordNode(Node):
 
     def discover(self) -> None:
         for topic, types in self.get_topic_names_and_types():
-            if topic in self.subscriptions_by_topic or not self._wanted(topic):
+            if topic in self.subscriptions_by_topic or topic in self.unrecordable or not self._wanted(topic):
                 continue
             publishers = self.get_publishers_info_by_topic(topic)
             if not publishers:
                 continue  # only subscribers so far
-            self._subscribe(topic, types[0], publishers)
+            try:
+                self._subscribe(topic, types[0], publishers)
+            except (BagError, ImportError, AttributeError) as exc:  # no definition or typesupport here
+                self.unrecordable.add(topic)
+                self.get_logger().error(f"cannot record {topic} [{types[0]}]: {exc}")
 
     def _subscribe(self, topic: str, type_name: str, publishers) -> None:
         schema = load_schema(type_name)

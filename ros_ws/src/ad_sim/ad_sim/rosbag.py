@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import argparse
 import bisect
+import contextlib
 import heapq
 import io
 import json
+import mmap
 import os
 import re
 import struct
@@ -32,7 +34,7 @@ import yaml
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Schema
+from mcap.records import Channel, Chunk, ChunkIndex, Footer, Message, Schema
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 from mcap_ros2._dynamic import serialize_dynamic
@@ -487,6 +489,23 @@ class _FileScan:
     channels: dict[int, Channel] = field(default_factory=dict)
 
 
+_RECORD_TYPES = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel}
+
+
+@contextlib.contextmanager
+def _mapped(path: Path):
+    """The file's bytes, memory-mapped (bags can be larger than memory)."""
+    try:
+        with open(path, "rb") as file:
+            if os.fstat(file.fileno()).st_size == 0:
+                yield b""
+                return
+            with mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ) as data:
+                yield data
+    except OSError as exc:
+        raise BagError(f"cannot read {path}: {exc}") from exc
+
+
 def _natural_key(path: Path) -> list:
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
 
@@ -552,12 +571,15 @@ class BagReader:
         return files
 
     def topics(self) -> dict[str, str]:
-        """topic -> message type, over all files (reads their channel records)."""
+        """topic -> message type over all files (from the summaries; files without one are scanned)."""
         result = {}
         for path in self.files:
             scan = _FileScan(path)
-            for _ in self._scan_file(scan):
-                pass
+            with _mapped(path) as data:
+                summary = self._read_summary(scan, data)
+                if summary is None or not scan.channels:
+                    for _ in self._scan_records(scan, data, None):
+                        pass
             for channel in scan.channels.values():
                 schema = scan.schemas.get(channel.schema_id)
                 result[channel.topic] = schema.name if schema else ""
@@ -605,10 +627,10 @@ class BagReader:
             raise BagError(message)
         warnings.warn(message, stacklevel=4)
 
-    def _read_summary_starts(self, scan: _FileScan, data: bytes) -> dict[int, int] | None:
-        """chunk offset -> earliest log time in that and all later chunks, from the summary.
+    def _read_summary(self, scan: _FileScan, data) -> list[ChunkIndex] | None:
+        """Chunk indexes (and the schemas and channels into `scan`) from the file's summary.
 
-        None if the file has no usable footer/summary (then it is read and sorted whole)."""
+        None if the file has no footer (a killed writer: an error unless recovering) or no summary."""
         size = len(data)
         footer_at = size - MAGIC_SIZE - _FOOTER_RECORD_SIZE
         if size < 2 * MAGIC_SIZE + _FOOTER_RECORD_SIZE or data[-MAGIC_SIZE:] != MCAP_MAGIC or data[footer_at] != Opcode.FOOTER:
@@ -620,34 +642,39 @@ class BagReader:
         footer = Footer.read(ReadDataStream(io.BytesIO(data[footer_at + 9 : size - MAGIC_SIZE])))
         if footer.summary_start == 0:
             return None
+        chunk_indexes = []
         try:
-            chunk_indexes = []
-            reader = StreamReader(io.BytesIO(data[footer.summary_start :]), skip_magic=True)
-            for record in reader.records:
-                if type(record).__name__ == "ChunkIndex":
+            for record in StreamReader(io.BytesIO(data[footer.summary_start :]), skip_magic=True).records:
+                if isinstance(record, ChunkIndex):
                     chunk_indexes.append(record)
+                elif isinstance(record, Schema):
+                    scan.schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    scan.channels[record.id] = record
         except (McapError, struct.error, ValueError) as exc:
             self._problem(f"{scan.path}: corrupt summary section at byte {footer.summary_start}: {exc}")
             return None
-        chunk_indexes.sort(key=lambda c: c.chunk_start_offset)
-        suffix_min: dict[int, int] = {}
-        earliest = None
-        for chunk_index in reversed(chunk_indexes):
-            start = chunk_index.message_start_time
-            earliest = start if earliest is None else min(earliest, start)
-            suffix_min[chunk_index.chunk_start_offset] = earliest
-        return suffix_min
+        return chunk_indexes
 
     def _scan_file(self, scan: _FileScan) -> Iterator[tuple[int, int, Channel, bytes]]:
         """Messages of one file as (log_time, order, channel, data), in log-time order."""
-        try:
-            data = scan.path.read_bytes()
-        except OSError as exc:
-            raise BagError(f"cannot read {scan.path}: {exc}") from exc
-        if data[:MAGIC_SIZE] != MCAP_MAGIC:
-            raise BagError(f"{scan.path} is not an MCAP file (starts with {data[:MAGIC_SIZE]!r})")
-        suffix_min = self._read_summary_starts(scan, data)
-        chunk_offsets = sorted(suffix_min) if suffix_min else []
+        with _mapped(scan.path) as data:
+            if data[:MAGIC_SIZE] != MCAP_MAGIC:
+                raise BagError(f"{scan.path} is not an MCAP file (starts with {bytes(data[:MAGIC_SIZE])!r})")
+            chunk_indexes = self._read_summary(scan, data)
+            # chunk offset -> earliest log time in that and every later chunk: once past a chunk,
+            # messages before the next chunk's value can be released in order.
+            release_at: dict[int, int] = {}
+            earliest = None
+            for chunk_index in sorted(chunk_indexes or [], key=lambda c: c.chunk_start_offset, reverse=True):
+                start = chunk_index.message_start_time
+                earliest = start if earliest is None else min(earliest, start)
+                release_at[chunk_index.chunk_start_offset] = earliest
+            yield from self._scan_records(scan, data, release_at or None)
+
+    def _scan_records(self, scan: _FileScan, data, release_at: dict[int, int] | None) -> Iterator[tuple[int, int, Channel, bytes]]:
+        """Read the data section record by record; without `release_at` the file is sorted whole."""
+        chunk_offsets = sorted(release_at) if release_at else []
         pending: list[tuple[int, int, Channel, bytes]] = []
         order = 0
         pos = MAGIC_SIZE
@@ -670,14 +697,12 @@ class BagReader:
                     f"{length} bytes runs past the end of the file ({size} bytes)"
                 )
                 break
-            body = data[pos + 9 : end]
             try:
                 if opcode == Opcode.CHUNK:
-                    records = breakup_chunk(Chunk.read(ReadDataStream(io.BytesIO(body))), validate_crc=True)
-                elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
-                    records = [(Schema if opcode == Opcode.SCHEMA else Channel).read(ReadDataStream(io.BytesIO(body)))]
-                elif opcode == Opcode.MESSAGE:
-                    records = [Message.read(ReadDataStream(io.BytesIO(body)), length)]
+                    records = breakup_chunk(Chunk.read(ReadDataStream(io.BytesIO(data[pos + 9 : end]))), validate_crc=True)
+                elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+                    stream = ReadDataStream(io.BytesIO(data[pos + 9 : end]))
+                    records = [Message.read(stream, length) if opcode == Opcode.MESSAGE else _RECORD_TYPES[opcode].read(stream)]
                 elif opcode in (Opcode.DATA_END, Opcode.FOOTER):
                     break
                 else:
@@ -699,10 +724,9 @@ class BagReader:
                     heapq.heappush(pending, (record.log_time, order, channel, record.data))
                     order += 1
             if chunk_offsets and opcode == Opcode.CHUNK:
-                # No later chunk holds a message earlier than the next chunk's suffix minimum.
                 following = bisect.bisect_right(chunk_offsets, pos)
                 if following < len(chunk_offsets):
-                    yield from release(suffix_min[chunk_offsets[following]])
+                    yield from release(release_at[chunk_offsets[following]])
             pos = end
         yield from release(None)
 
