@@ -55,6 +55,19 @@ _DX = wp.constant(DX)
 # differentiated, and skipping them halves compile time.
 wp.set_module_options({"optimization_level": 3, "enable_backward": False})
 BLOCK_DIM = 256  # CUDA threads per block of the particle kernels (tuning knob, see benchmarks/)
+
+# Shared-memory P2G (CUDA): a block of TILE_BLOCK spatially sorted particles of one scene adds its
+# transfers into a PATCH^3-node patch in shared memory, then flushes the patch to the global grid,
+# replacing ~27 x 4 global float atomics per particle by a few per node. Particles whose stencil
+# leaves the patch (or that belong to another scene than the block's first) use global atomics.
+PATCH = 10
+TILE_BLOCK = 256
+PATCH_SLOTS = -(-(PATCH**3) // TILE_BLOCK) * TILE_BLOCK  # patch nodes padded to whole flush rounds
+_PATCH = wp.constant(PATCH)
+_PATCH_NODES = wp.constant(PATCH**3)
+_PATCH_SLOTS = wp.constant(PATCH_SLOTS)
+_TILE_BLOCK = wp.constant(TILE_BLOCK)
+_FAR = wp.constant(1 << 20)
 _BOUND = wp.constant(BOUNDARY_CELLS)
 _GROUND_FRICTION = wp.constant(GROUND_FRICTION)
 _CLAMP_LO = wp.constant(CLAMP_LO)
@@ -146,6 +159,12 @@ def node_index(s: int, i: int, j: int, k: int):
 
 
 @wp.func
+def stencil_base(xg: wp.vec3):
+    """Lowest node of the 3x3x3 stencil of a particle at grid coordinates xg."""
+    return wp.vec3i(int(xg[0] - 0.5), int(xg[1] - 0.5), int(xg[2] - 0.5))
+
+
+@wp.func
 def bspline_weights(fx: wp.vec3):
     """Quadratic B-spline weights: row o = offset o (0, 1, 2) of the stencil, column = axis."""
     a = wp.vec3(1.5) - fx
@@ -181,7 +200,7 @@ def p2g(
     affine = (-dt[s] * volume[s] * 4.0 * _INV_DX * _INV_DX) * stress[p] + m * C[p]
     mv = m * v[p]
     xg = x[p] * _INV_DX
-    base = wp.vec3i(int(xg[0] - 0.5), int(xg[1] - 0.5), int(xg[2] - 0.5))
+    base = stencil_base(xg)
     fx = xg - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     w = bspline_weights(fx)
     for i in range(3):
@@ -192,6 +211,71 @@ def p2g(
                 n = node_index(s, base[0] + i, base[1] + j, base[2] + k)
                 wp.atomic_add(grid_mv, n, weight * (mv + affine * dpos))
                 wp.atomic_add(grid_m, n, weight * m)
+
+
+@wp.kernel
+def p2g_tiled(
+    iteration: int,
+    total: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    stress: wp.array(dtype=wp.mat33),
+    scene: wp.array(dtype=wp.int32),
+    substeps: wp.array(dtype=wp.int32),
+    dt: wp.array(dtype=float),
+    mass: wp.array(dtype=float),
+    volume: wp.array(dtype=float),
+    grid_mv: wp.array(dtype=wp.vec3),
+    grid_m: wp.array(dtype=float),
+):
+    """p2g with a shared-memory patch per block (same sums as p2g up to float summation order)."""
+    block, lane = wp.tid()
+    first = block * _TILE_BLOCK
+    last = wp.min(first + _TILE_BLOCK - 1, total - 1)
+    s0 = scene[first]
+    if s0 == scene[last] and iteration >= substeps[s0]:
+        return  # block-uniform: the whole block is idle this iteration
+    p = wp.min(first + lane, total - 1)
+    s = scene[p]
+    active = first + lane < total and iteration < substeps[s]
+    m = mass[s]
+    affine = (-dt[s] * volume[s] * 4.0 * _INV_DX * _INV_DX) * stress[p] + m * C[p]
+    mv = m * v[p]
+    xg = x[p] * _INV_DX
+    base = stencil_base(xg)
+    fx = xg - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    w = bspline_weights(fx)
+    # Patch origin: smallest stencil base over the block's particles of scene s0.
+    mine = active and s == s0
+    ox = wp.tile_extract(wp.tile_min(wp.tile(wp.where(mine, base[0], _FAR))), 0)
+    oy = wp.tile_extract(wp.tile_min(wp.tile(wp.where(mine, base[1], _FAR))), 0)
+    oz = wp.tile_extract(wp.tile_min(wp.tile(wp.where(mine, base[2], _FAR))), 0)
+    lx = base[0] - ox
+    ly = base[1] - oy
+    lz = base[2] - oz
+    in_patch = mine and lx + 2 < _PATCH and ly + 2 < _PATCH and lz + 2 < _PATCH
+    # One (momentum, mass) vec4 per node: one cooperative scatter per stencil node, not two.
+    patch = wp.tile_zeros(shape=_PATCH_SLOTS, dtype=wp.vec4, storage="shared")
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                weight = w[i, 0] * w[j, 1] * w[k, 2]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * _DX
+                value = weight * (mv + affine * dpos)
+                local = wp.where(in_patch, ((lx + i) * _PATCH + ly + j) * _PATCH + lz + k, 0)
+                wp.tile_scatter_add(patch, local, wp.vec4(value[0], value[1], value[2], weight * m), in_patch)
+                if active and not in_patch:
+                    n = node_index(s, base[0] + i, base[1] + j, base[2] + k)
+                    wp.atomic_add(grid_mv, n, value)
+                    wp.atomic_add(grid_m, n, weight * m)
+    for r in range(_PATCH_SLOTS // _TILE_BLOCK):
+        local = r * _TILE_BLOCK + lane
+        node = wp.tile_extract(patch, local)
+        if node[3] > 0.0:  # padding slots and untouched nodes have no mass
+            n = node_index(s0, ox + local / (_PATCH * _PATCH), oy + (local / _PATCH) % _PATCH, oz + local % _PATCH)
+            wp.atomic_add(grid_mv, n, wp.vec3(node[0], node[1], node[2]))
+            wp.atomic_add(grid_m, n, node[3])
 
 
 @wp.kernel
@@ -269,7 +353,7 @@ def g2p(
         return
     h = dt[s]
     xg = x[p] * _INV_DX
-    base = wp.vec3i(int(xg[0] - 0.5), int(xg[1] - 0.5), int(xg[2] - 0.5))
+    base = stencil_base(xg)
     fx = xg - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     w = bspline_weights(fx)
     new_v = wp.vec3(0.0)
@@ -334,6 +418,27 @@ def _initial_velocity(scene: Scene, count: int, number: int) -> np.ndarray:
     return np.broadcast_to(vel, (count, 3))
 
 
+def _morton_cells(points: np.ndarray) -> np.ndarray:
+    """Morton (Z-order) code of the grid cell of each point: nearby cells get nearby codes."""
+    cells = np.clip((points * GRID_RESOLUTION).astype(np.int64), 0, GRID_RESOLUTION - 1)
+    code = np.zeros(len(points), dtype=np.int64)
+    for bit in range(int(math.log2(GRID_RESOLUTION))):
+        for axis in range(3):
+            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return code
+
+
+def spatial_order(points: np.ndarray, scene_ids: np.ndarray) -> np.ndarray:
+    """Permutation that sorts particles by scene, then by Morton code of their cell (stable).
+
+    Particles stay near their memory neighbours as the continuum deforms, so sorting once at the
+    start keeps each block of particles compact for the shared-memory P2G (and the CPU caches).
+    The order within a scene does not depend on the other scenes of the batch.
+    """
+    key = scene_ids.astype(np.int64) * NODES + _morton_cells(points)
+    return np.argsort(key, kind="stable")
+
+
 def simulate(
     scenes: list[Scene],
     device: str = "cpu",
@@ -342,10 +447,13 @@ def simulate(
     progress: bool = False,
     gravity: float = GRAVITY,
     boundaries: bool = True,
+    shared_p2g: bool | None = None,
 ) -> list[SceneResult]:
     """Simulates all scenes together in the same kernel launches; returns one result per scene.
 
     gravity (m/s^2 along -z) and boundaries (walls + ground) can be switched off for physics tests.
+    shared_p2g selects the shared-memory P2G kernel (default: on CUDA devices only; on CPU it
+    needs warp.config.enable_cpu_blocks and is slower, but it is how the CUDA path is tested).
     """
     if not scenes:
         return []
@@ -368,16 +476,22 @@ def simulate(
     lame_pairs = [lame(p["youngs_modulus"], p["poissons_ratio"]) for p in params]
     velocities = np.concatenate([_initial_velocity(s, n, i) for i, (s, n) in enumerate(zip(scenes, counts))])
     num_scenes, total = len(scenes), int(offsets[-1])
+    scene_ids = np.repeat(np.arange(num_scenes), counts)
+    order = spatial_order(np.concatenate(positions), scene_ids)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(total)  # rank[i]: slot of input particle i in the solver arrays
 
     with wp.ScopedDevice(device):
+        if shared_p2g is None:
+            shared_p2g = wp.get_device().is_cuda
         f32 = lambda a: wp.array(np.asarray(a, dtype=np.float32), dtype=float)  # noqa: E731
         i32 = lambda a: wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32)  # noqa: E731
-        x = wp.array(np.concatenate(positions), dtype=wp.vec3)
-        v = wp.array(velocities, dtype=wp.vec3)
+        x = wp.array(np.concatenate(positions)[order], dtype=wp.vec3)
+        v = wp.array(velocities[order], dtype=wp.vec3)
         C = wp.zeros(total, dtype=wp.mat33)
         F = wp.array(np.broadcast_to(np.eye(3, dtype=np.float32), (total, 3, 3)).copy(), dtype=wp.mat33)
         stress = wp.zeros(total, dtype=wp.mat33)
-        scene_of = i32(np.repeat(np.arange(num_scenes), counts))
+        scene_of = i32(scene_ids[order])
         n_sub = i32(substeps)
         dt = f32(frame_interval / substeps.astype(np.float64))
         mass = f32([s.density * s.particle_volume for s in scenes])
@@ -391,7 +505,7 @@ def simulate(
         grid_mv = wp.zeros(shape, dtype=wp.vec3)
         grid_m = wp.zeros(shape, dtype=float)
         grid_v = wp.zeros(shape, dtype=wp.vec3)
-        rec_index = i32(np.concatenate([r + o for r, o in zip(records, offsets[:-1])]))
+        rec_index = i32(rank[np.concatenate([r + o for r, o in zip(records, offsets[:-1])])])
         n_rec = int(rec_offsets[-1])
         out_x = wp.zeros((frame_count, n_rec), dtype=wp.vec3)
         out_F = wp.zeros((frame_count, n_rec), dtype=wp.mat33)
@@ -409,12 +523,20 @@ def simulate(
             frames = tqdm(frames, desc=f"MPM {num_scenes} scenes", unit="frame")
         for frame in frames:
             for it in range(iterations):
-                wp.launch(
-                    p2g,
-                    total,
-                    inputs=[it, x, v, C, stress, scene_of, n_sub, dt, mass, volume, grid_mv, grid_m],
-                    block_dim=BLOCK_DIM,
-                )
+                if shared_p2g:
+                    wp.launch_tiled(
+                        p2g_tiled,
+                        dim=[(total + TILE_BLOCK - 1) // TILE_BLOCK],
+                        inputs=[it, total, x, v, C, stress, scene_of, n_sub, dt, mass, volume, grid_mv, grid_m],
+                        block_dim=TILE_BLOCK,
+                    )
+                else:
+                    wp.launch(
+                        p2g,
+                        total,
+                        inputs=[it, x, v, C, stress, scene_of, n_sub, dt, mass, volume, grid_mv, grid_m],
+                        block_dim=BLOCK_DIM,
+                    )
                 wp.launch(
                     grid_update,
                     shape,
@@ -427,7 +549,7 @@ def simulate(
                     block_dim=BLOCK_DIM,
                 )
             record(frame)
-        all_x, all_v = x.numpy(), v.numpy()
+        all_x, all_v = x.numpy()[rank], v.numpy()[rank]  # back to input order
         rec_x, rec_F = out_x.numpy(), out_F.numpy()
 
     results = []
