@@ -6,7 +6,7 @@
 #
 # Environment:
 #   VENV=path      virtual environment to create/use (default: .venv beside this script)
-#   PYTHON=exe     interpreter the venv is made from (default: python3.11)
+#   PYTHON=exe     interpreter the venv is made from (default: python3.11, else python3)
 #   AD_FORCE=1     redo every step
 set -euo pipefail
 
@@ -14,7 +14,7 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 VENV="${VENV:-$ROOT/.venv}"
 mkdir -p "$(dirname "$VENV")"
 VENV="$(cd "$(dirname "$VENV")" && pwd)/$(basename "$VENV")"
-PYTHON="${PYTHON:-python3.11}"
+PYTHON="${PYTHON:-$(command -v python3.11 || command -v python3 || echo python3.11)}"
 WS="$ROOT/ros_ws"
 STAMP_DIR="$VENV/.ad-setup"
 BUILD_STAMP="$WS/install/.ad-build-stamp"
@@ -37,11 +37,11 @@ if command -v flock >/dev/null; then flock 9; fi
 if [ ! -x "$VENV/bin/python" ]; then
     step "creating virtual environment $VENV ($PYTHON)"
     command -v "$PYTHON" >/dev/null || die "$PYTHON not found: install Python 3.11 or set PYTHON=/path/to/python3.11"
-    "$PYTHON" -m venv "$VENV"
+    "$PYTHON" -m venv "$VENV" || die "$PYTHON -m venv $VENV failed: is the venv module installed (Debian: python3.11-venv)?"
 fi
 VENV_PY="$VENV/bin/python"
 "$VENV_PY" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' \
-    || die "$VENV is not Python 3.11 (the ROS 2 Jazzy wheels are cp311): remove it or set VENV elsewhere"
+    || die "$VENV_PY does not run Python 3.11 (the ROS 2 Jazzy wheels are cp311): remove $VENV, or set PYTHON=/path/to/python3.11 or VENV=elsewhere"
 mkdir -p "$STAMP_DIR"
 
 # 2. Pinned requirements --------------------------------------------------------------------
