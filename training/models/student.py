@@ -28,6 +28,7 @@ class StudentConfig:
     z_dim: int = 256  # must match the teacher's
     # streaming
     channels: tuple[int, ...] = (16, 32, 64, 96)
+    pool: int = 4  # the last feature map is average-pooled to pool x pool, then flattened
     embed_dim: int = 128
     temporal_width: int = 128
     temporal_depth: int = 2
@@ -52,7 +53,7 @@ def student_preset(kind: str, size: str, z_dim: int) -> StudentConfig:
     if kind not in ("streaming", "uniformer"):
         raise ValueError(f"unknown student kind {kind!r}; expected streaming or uniformer")
     presets = {
-        ("streaming", "paper"): dict(input_size=(96, 96), channels=(24, 48, 96, 128, 192), embed_dim=192,
+        ("streaming", "paper"): dict(input_size=(96, 96), channels=(16, 32, 64, 128), pool=3, embed_dim=192,
                                      temporal_width=192, temporal_depth=3, temporal_heads=6),
         ("streaming", "small"): dict(channels=(12, 24, 48, 96), embed_dim=96, temporal_width=96),
         ("streaming", "tiny"): dict(input_size=(32, 32), channels=(8, 16), embed_dim=32, temporal_width=32,
@@ -74,19 +75,24 @@ def _conv_bn(cin: int, cout: int, stride: int) -> nn.Sequential:
 
 
 class FrameEncoder(nn.Module):
-    """(B, 1, H, W) in [0, 1] -> (B, D). Stride-2 conv stages down to a 4x4 map, flattened so the
-    embedding keeps where the object is in the image (position matters: it falls and lands)."""
+    """(B, 1, H, W) in [0, 1] -> (B, D). Stride-2 conv stages, pooled to a small map (pool x pool)
+    and flattened so the embedding keeps where the object is in the image (it falls and lands)."""
 
     def __init__(self, config: StudentConfig):
         super().__init__()
+        side = [n / 2 ** len(config.channels) for n in config.input_size]
+        if any(n < config.pool or n % config.pool for n in side):
+            raise ValueError(f"input size {config.input_size} with {len(config.channels)} stride-2 stages leaves a "
+                             f"{side} map; it must be a multiple of pool={config.pool} (exportable pooling)")
         layers, cin = [], 1
         for cout in config.channels:
             layers += [_conv_bn(cin, cout, 2), _conv_bn(cout, cout, 1)] if cout == config.channels[-1] else \
                 [_conv_bn(cin, cout, 2)]
             cin = cout
         self.features = nn.Sequential(*layers)
-        self.pool = nn.AdaptiveAvgPool2d(4)
-        self.project = nn.Sequential(nn.Flatten(), nn.Linear(cin * 16, config.embed_dim), nn.LayerNorm(config.embed_dim))
+        self.pool = nn.AdaptiveAvgPool2d(config.pool)
+        self.project = nn.Sequential(nn.Flatten(), nn.Linear(cin * config.pool ** 2, config.embed_dim),
+                                     nn.LayerNorm(config.embed_dim))
 
     def forward(self, frame: torch.Tensor) -> torch.Tensor:
         return self.project(self.pool(self.features(frame)))
