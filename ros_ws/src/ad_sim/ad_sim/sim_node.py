@@ -9,7 +9,10 @@ acknowledged it. So before a topic's publisher holds qos_depth unacknowledged me
 waits for its subscribers' acknowledgements (Publisher.wait_for_all_acked); with
 real_time_factor 0 this is what paces playback. `ros2 run ad_sim record` subscribes with
 KEEP_ALL history, so an acknowledged sample is never overwritten before it is written.
-Waiting at every frame instead would cost a DDS heartbeat period (3 s on Fast DDS) per frame.
+Acknowledgements follow the writers' heartbeats (every 3 s by default on Fast DDS, which would
+cap playback near one episode a second), so on Fast DDS the node loads a default writer profile
+with 20 ms heartbeats (ad_sim/data/dds/fast_heartbeat.xml) unless FASTRTPS_DEFAULT_PROFILES_FILE
+is set already: about 60 episodes/s reach the recorder (benchmarks/record_throughput.py).
 Set wait_for_subscribers to N to start playing only once every simulator topic has N matched
 subscriptions (e.g. a recorder started first).
 """
@@ -19,10 +22,12 @@ from __future__ import annotations
 import array
 import importlib
 import math
+import os
 import queue
 import signal
 import threading
 import time
+from pathlib import Path
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
@@ -34,8 +39,16 @@ from rclpy.signals import SignalHandlerOptions
 
 from . import materials, messages
 
+FAST_HEARTBEAT_PROFILE = Path(__file__).resolve().parent / "data" / "dds" / "fast_heartbeat.xml"
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
+
+
+def use_fast_heartbeat() -> None:
+    """Before rclpy.init: on Fast DDS (the default RMW), make reliable writers heartbeat every 20 ms."""
+    if os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"):
+        if not os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE") and not os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE"):
+            os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(FAST_HEARTBEAT_PROFILE)
 
 
 def import_message_class(type_name: str):
@@ -95,10 +108,13 @@ class SimPublishers:
 
     def publish(self, topic: str, data: dict) -> None:
         """Publish a messages.* dict on `topic`."""
-        type_name, publisher = self.by_topic[topic]
+        self.publish_message(topic, to_ros_message(self.by_topic[topic][0], data))
+
+    def publish_message(self, topic: str, message) -> None:
+        """Publish an rclpy message on `topic`, first waiting for acknowledgements if the window is full."""
         if self.unacknowledged[topic] >= self.depth - 1:
             self.wait_for_acks([topic])
-        publisher.publish(to_ros_message(type_name, data))
+        self.by_topic[topic][1].publish(message)
         self.unacknowledged[topic] += 1
         self.published += 1
 
@@ -243,6 +259,7 @@ class SimNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
+    use_fast_heartbeat()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
