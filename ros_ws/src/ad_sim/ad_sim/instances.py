@@ -121,8 +121,8 @@ class Instance:
         posed = SCALE * _mesh_vertices(self.shape) @ self.rotation().T
         low, high = posed.min(axis=0), posed.max(axis=0)
         wall_low, wall_high = BOUNDARY + WALL_MARGIN, 1.0 - BOUNDARY - WALL_MARGIN
-        centre = 0.5 + np.array(self.jitter) - 0.5 * (low[:2] + high[:2])
-        xy = np.clip(centre, wall_low - low[:2], wall_high - high[:2])
+        origin = 0.5 + np.array(self.jitter) - 0.5 * (low[:2] + high[:2])  # puts the bounding box centre at 0.5 + jitter
+        xy = np.clip(origin, wall_low - low[:2], wall_high - high[:2])
         # Tall poses get a smaller gap so that the top stays below the ceiling's boundary layer.
         gap = min(self.drop_gap, wall_high - BOUNDARY - (high[2] - low[2]))
         return np.array([xy[0], xy[1], BOUNDARY + gap - low[2]])
