@@ -136,7 +136,9 @@ def bench_scenes(args) -> dict:
 def bench_episodes(args) -> dict:
     from ad_sim import episode, instances
 
-    chosen = instances.benchmark(args.config, "train", base_seed=args.seed)[: args.instances]
+    split = instances.benchmark(args.config, "train", base_seed=args.seed)
+    picks = np.random.default_rng(args.seed).choice(len(split), min(args.instances, len(split)), replace=False)
+    chosen = [split[i] for i in sorted(picks)]  # a random, seeded sample over shapes and families
     episode.simulate_batch(chosen[:1], device=args.device, frame_count=2)  # warm-up / compile
     t0 = time.perf_counter()
     episodes = episode.simulate_batch(chosen, device=args.device, max_batch=args.batch, progress=args.progress)
