@@ -80,6 +80,14 @@ def test_simulate_batch_is_deterministic(episodes):
         assert a.particle_count == b.particle_count
 
 
+def test_resimulation_with_other_material_starts_from_the_same_state():
+    original = instances()[0]
+    predicted = Instance("resim", "custom", original.shape, "sand", {"youngs_modulus": 1e5, "poissons_ratio": 0.3, "friction_angle": 0.4}, original.seed)
+    np.testing.assert_array_equal(sample_particles(original)[0], sample_particles(predicted)[0])
+    np.testing.assert_array_equal(original.cameras(1)[0].pose, predicted.cameras(1)[0].pose)
+    assert original.velocity == predicted.velocity
+
+
 def test_views_override_keeps_the_seeded_cameras(episodes):
     tiny = benchmark("tiny", "unseen")
     assert len(tiny) == 6 and all(i.views == 1 for i in tiny)

@@ -85,7 +85,11 @@ def shape_names() -> frozenset[str]:
 
 @dataclass
 class Instance:
-    """One episode to simulate. Fields after `views` are drawn from `seed` at construction."""
+    """One episode to simulate. Fields after `views` are drawn from `seed` at construction.
+
+    Pose, velocity, cameras and particles depend on (shape, seed) only: the same instance with
+    another material or parameters (re-simulation of a prediction) starts from the same state.
+    """
 
     episode_id: str
     split: str  # train | seen | unseen | custom
