@@ -173,8 +173,7 @@ def _write_shard(folder: Path, episodes: list[dict]) -> None:
             videos.append(video)
             owner.append(i)
             views.append(v)
-    np.save(tmp / "videos.npy", np.array(videos, dtype=np.uint8).reshape(-1, FRAME_COUNT, *(
-        videos[0].shape[1:] if videos else (128, 128))))
+    np.save(tmp / "videos.npy", np.stack(videos).astype(np.uint8))  # every episode has >= 1 complete view
     np.save(tmp / "video_instance.npy", np.array(owner, dtype=np.int64))
     np.save(tmp / "video_view.npy", np.array(views, dtype=np.int64))
     meta = {key: [e[key] for e in episodes] for key in ("episode_id", "shape", "split", "material", "seed")}
@@ -191,29 +190,28 @@ class Dataset:
     """All instances of a set of bags; small arrays in memory, big ones memory-mapped per shard."""
 
     def __init__(self, shards: list[Path]):
+        if not shards:
+            raise ValueError("a Dataset needs at least one cached bag")
         self.shards = shards
-        load = lambda name: [np.load(s / name, mmap_mode="r") for s in shards]  # noqa: E731
-        self._trajectories = load("trajectories.npy")
-        self._videos = load("videos.npy")
-        self.labels = np.concatenate([np.asarray(a) for a in load("labels.npy")]) if shards else np.zeros(0, int)
-        self.params_si = np.concatenate([np.asarray(a) for a in load("params_si.npy")]).reshape(-1, 4)
-        self.params_norm = np.concatenate([np.asarray(a) for a in load("params_norm.npy")]).reshape(-1, 4)
-        self.param_mask = np.concatenate([np.asarray(a) for a in load("param_mask.npy")]).reshape(-1, 4)
+
+        def load(name: str, mmap: bool = False) -> list[np.ndarray]:
+            return [np.load(s / name, mmap_mode="r" if mmap else None) for s in shards]
+
+        self._trajectories = load("trajectories.npy", mmap=True)
+        self._videos = load("videos.npy", mmap=True)
+        self.labels = np.concatenate(load("labels.npy"))
+        self.params_si, self.params_norm, self.param_mask = (
+            np.concatenate(load(f"{name}.npy")).reshape(-1, 4) for name in ("params_si", "params_norm", "param_mask"))
         metas = [json.loads((s / "meta.json").read_text()) for s in shards]
         self.meta = {k: sum((m[k] for m in metas), []) for k in ("episode_id", "shape", "split", "material", "seed")}
         self.episode_ids: list[str] = self.meta["episode_id"]
-        # Global instance index -> (shard, row); global video index -> (shard, row, instance).
+        # Global instance index -> (shard, row); global video index -> (shard, row) and its instance.
         self._inst_loc = [(s, r) for s, a in enumerate(self._trajectories) for r in range(len(a))]
         offsets = np.cumsum([0] + [len(a) for a in self._trajectories])
-        self.video_loc, video_instance, video_view = [], [], []
-        for s, shard in enumerate(shards):
-            owners = np.load(shard / "video_instance.npy")
-            for r, owner in enumerate(owners):
-                self.video_loc.append((s, r))
-            video_instance.append(owners + offsets[s])
-            video_view.append(np.load(shard / "video_view.npy"))
-        self.video_instance = np.concatenate(video_instance) if shards else np.zeros(0, int)
-        self.video_view = np.concatenate(video_view) if shards else np.zeros(0, int)
+        owners = load("video_instance.npy")
+        self.video_loc = [(s, r) for s, o in enumerate(owners) for r in range(len(o))]
+        self.video_instance = np.concatenate([o + offsets[s] for s, o in enumerate(owners)])
+        self.video_view = np.concatenate(load("video_view.npy"))
 
     def __len__(self) -> int:
         return len(self.labels)
