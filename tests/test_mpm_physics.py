@@ -212,8 +212,9 @@ def test_batched_equals_one_at_a_time_and_is_deterministic():
     for sc, b, a in zip(scenes, batched, again):
         (single,) = simulate([sc], frame_count=8)
         assert b.positions.shape == (8, len(sc.positions) if sc.record is None else len(sc.record), 3)
-        assert np.allclose(b.positions, single.positions, atol=1e-6)
-        assert np.allclose(b.deformation, single.deformation, atol=1e-5)
+        # On CPU (sequential atomics) batching is exact; on CUDA it agrees to float rounding.
+        assert np.array_equal(b.positions, single.positions)
+        assert np.array_equal(b.deformation, single.deformation)
         assert np.array_equal(b.positions, a.positions) and np.array_equal(b.deformation, a.deformation)
     # Recorded indices follow `record` (frame 0 is the initial state).
     assert np.array_equal(batched[2].positions[0], scenes[2].positions[[5, 0, 17]])

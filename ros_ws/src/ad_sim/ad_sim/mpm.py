@@ -1,10 +1,11 @@
 """Batched explicit MLS-MPM (APIC transfers, quadratic B-splines) in Warp, CPU and CUDA.
 
 Many scenes advance in the same kernel launches: particles of all scenes are concatenated with a
-particle -> scene index, every scene owns one 32^3 grid (arrays of shape (S, 32, 32, 32)) and its
-own material constants and time step. Each scene takes n_s = substeps_for(...) substeps per frame;
-the solver loops max(n_s) times per frame and a scene whose n_s is exhausted sits the remaining
-iterations out, so every scene lands exactly on the frame times. See docs/simulator.md.
+particle -> scene index (and sorted spatially within each scene), every scene owns one 32^3 grid
+(flat arrays of S * 32^3 nodes) and its own material constants and time step. Each scene takes
+n_s = scene_substeps(...) substeps per frame; the solver loops max(n_s) times per frame and a scene
+whose n_s is exhausted sits the remaining iterations out, so every scene lands exactly on the frame
+times. On CUDA, P2G accumulates in shared memory (p2g_tiled). See docs/simulator.md.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from ad_sim.materials import (
 DX = 1.0 / GRID_RESOLUTION
 BOUNDARY_CELLS = 3  # grid nodes within this many cells of a face carry the boundary conditions
 COURANT = 0.5  # dt = COURANT * dx / (wave speed + bound on material speed)
-GROUND_FRICTION = 0.5  # Coulomb coefficient between material and ground (z = 0 plane)
+GROUND_FRICTION = 0.5  # Coulomb coefficient between material and ground (bottom boundary layer)
 # Default bound on material speed (free fall through the whole unit cube) when a scene's own bound
 # (scene_speed_bound) is not known; added to the elastic wave speed so soft materials also take
 # small enough steps while falling.
