@@ -107,3 +107,12 @@ def test_node_reports_bad_parameters(ros_domain_id, tmp_path):
     node = start("node", ros_domain_id, tmp_path / "bad2.log", shape="sphere", material="jelly", youngs_modulus=1.0)
     assert node.wait(60) == 2
     assert "youngs_modulus" in (tmp_path / "bad2.log").read_text()
+
+
+def test_help_lists_the_parameters():
+    for executable, parameters in (("node", ("instances", "real_time_factor", "views", "wait_for_subscribers")), ("record", ("output", "topics", "max_bag_size"))):
+        result = subprocess.run([str(ADRUN), "ad_sim", executable, "--help"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
+        assert result.returncode == 0, result.stderr
+        assert f"ros2 run ad_sim {executable}" in result.stdout
+        for name in parameters:
+            assert f"  {name} (default" in result.stdout

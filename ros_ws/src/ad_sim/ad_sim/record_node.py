@@ -17,6 +17,7 @@ import time
 from datetime import datetime, timezone
 
 import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
@@ -26,7 +27,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from . import messages
 from .rosbag import BagError, BagWriter, header_stamp_ns, load_schema, qos_profile, starts_with_header
-from .sim_node import import_message_class
+from .sim_node import handle_help, import_message_class
 
 DRAIN_IDLE = 0.3  # s without incoming work after a stop signal before the bag is closed
 
@@ -49,18 +50,24 @@ def offered_qos(endpoint_qos) -> dict:
     )
 
 
+# ROS parameters: name, default, meaning (declared by RecordNode and listed by --help).
+PARAMETERS = (
+    ("output", "", "bag folder to write; empty: bags/record-<UTC time>"),
+    ("topics", Parameter.Type.STRING_ARRAY, "topics to record; unset: every simulator topic under topic_prefix, as they appear"),
+    ("topic_prefix", messages.DEFAULT_PREFIX, "prefix of the simulator topics"),
+    ("max_bag_size", 0, "split .mcap files at this many bytes; 0: never"),
+    ("compression", "zstd", "chunk compression: zstd | lz4 | none"),
+    ("stamp_source", "header", "log time of a message: header (its stamp, for types starting with a Header) | receive"),
+    ("discovery_period", 0.2, "seconds between looks for new topics"),
+    ("flush_period", 1.0, "seconds between chunk flushes (what a kill -9 can lose)"),
+)
+
+
 class RecordNode(Node):
     def __init__(self):
         super().__init__("ad_sim_record")
-        p = self.declare_parameter
-        p("output", "")  # bag folder; empty: bags/record-<UTC time>
-        p("topics", Parameter.Type.STRING_ARRAY)  # topics to record; unset: every simulator topic under topic_prefix
-        p("topic_prefix", messages.DEFAULT_PREFIX)
-        p("max_bag_size", 0)  # bytes per .mcap file, 0: never split
-        p("compression", "zstd")  # zstd | lz4 | none (chunk compression)
-        p("stamp_source", "header")  # header | receive: what becomes the log time
-        p("discovery_period", 0.2)  # s between looks for new topics
-        p("flush_period", 1.0)  # s between chunk flushes (bounds what a kill -9 loses)
+        for name, default, meaning in PARAMETERS:
+            self.declare_parameter(name, default, ParameterDescriptor(description=meaning))
         get = lambda name: self.get_parameter(name).value  # noqa: E731
         output = get("output") or f"bags/record-{datetime.now(timezone.utc):%Y%m%d-%H%M%S}"
         try:
@@ -142,6 +149,7 @@ class RecordNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
+    handle_help("ros2 run ad_sim record", __doc__, PARAMETERS, args)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -34,6 +34,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
@@ -129,29 +130,57 @@ class SimPublishers:
         return all(publisher.get_subscription_count() >= count for _, publisher in self.by_topic.values())
 
 
+# ROS parameters: name, default, meaning (declared by SimNode and listed by --help).
+PARAMETERS = (
+    ("instances", "", "instance file (YAML/JSON, SPEC 4); empty: the single instance if `shape` is set, else the benchmark"),
+    ("size", "tiny", "benchmark size: tiny | small | paper"),
+    ("split", "unseen", "benchmark split: train | seen | unseen"),
+    ("seed", 0, "base seed of the benchmark"),
+    ("shape", "", "single instance: shape name (with material, its parameters and instance_seed)"),
+    ("material", "jelly", "single instance: jelly | plasticine | sand"),
+    *((name, math.nan, "single instance: parameter in SI units, radians for friction_angle") for name in SINGLE_INSTANCE_PARAMETERS),
+    ("instance_seed", 0, "single instance: seed of pose, velocity, views and sampling"),
+    ("real_time_factor", 1.0, "playback speed over simulated time; 0: as fast as subscribers acknowledge"),
+    ("views", 0, "cameras published per episode; 0: the instances' own (4 train, 1 evaluation)"),
+    ("device", "cpu", "Warp device: cpu | cuda | cuda:<n>"),
+    ("batch", 4, "episodes simulated per batch, ahead of playback"),
+    ("loop", False, "start over after the last episode"),
+    ("topic_prefix", messages.DEFAULT_PREFIX, "prefix of the topics"),
+    ("frame_id", messages.DEFAULT_FRAME_PREFIX, "prefix of the frame ids: <frame_id>/world, <frame_id>/view_<k>"),
+    ("qos_depth", messages.QOS_DEPTH, "keep-last depth of the publishers (the flow control window)"),
+    ("wait_for_subscribers", 0, "start playing once every topic has this many subscriptions"),
+)
+
+
+def parameter_help(parameters) -> str:
+    def shown(default) -> str:
+        return "unset" if isinstance(default, Parameter.Type) else repr(default)
+
+    return "ROS parameters (--ros-args -p name:=value):\n" + "\n".join(
+        f"  {name} (default {shown(default)}): {meaning}" for name, default, meaning in parameters
+    )
+
+
+def handle_help(prog: str, doc: str, parameters, args: list[str] | None) -> None:
+    """`--help` before any ROS argument: print the description and parameters, exit."""
+    import argparse
+    import sys
+
+    from rclpy.utilities import remove_ros_args
+
+    parser = argparse.ArgumentParser(
+        prog=prog, description=doc, epilog=parameter_help(parameters), formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.parse_known_args(remove_ros_args(sys.argv if args is None else args)[1:])
+
+
 class SimNode(Node):
     def __init__(self, stop: threading.Event):
         super().__init__("ad_sim")
         self.stop = stop
-        p = self.declare_parameter
-        p("instances", "")  # instance file; empty: the benchmark below, or the single instance if `shape` is set
-        p("size", "tiny")
-        p("split", "unseen")
-        p("seed", 0)  # base seed of the benchmark
-        p("shape", "")  # single instance: shape, material, its parameters (SI, radians) and instance_seed
-        p("material", "jelly")
-        for name in SINGLE_INSTANCE_PARAMETERS:
-            p(name, math.nan, ParameterDescriptor(dynamic_typing=True))  # 1500000 or 1.5e6 alike
-        p("instance_seed", 0)
-        p("real_time_factor", 1.0)
-        p("views", 0)  # cameras per episode; 0: the instances' own (4 train, 1 evaluation)
-        p("device", "cpu")
-        p("batch", 4)  # episodes simulated per batch
-        p("loop", False)
-        p("topic_prefix", messages.DEFAULT_PREFIX)
-        p("frame_id", messages.DEFAULT_FRAME_PREFIX)  # prefix of frame ids: <frame_id>/world, <frame_id>/view_<k>
-        p("qos_depth", messages.QOS_DEPTH)
-        p("wait_for_subscribers", 0)
+        for name, default, meaning in PARAMETERS:
+            # dynamic typing for the physical parameters: 1500000 and 1.5e6 alike
+            self.declare_parameter(name, default, ParameterDescriptor(description=meaning, dynamic_typing=name in SINGLE_INSTANCE_PARAMETERS))
         self.param = lambda name: self.get_parameter(name).value
         self.rate = float(self.param("real_time_factor"))
         if self.rate < 0:
@@ -259,6 +288,7 @@ class SimNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
+    handle_help("ros2 run ad_sim node", __doc__, PARAMETERS, args)
     use_fast_heartbeat()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
