@@ -110,6 +110,10 @@ def test_lame_and_full_parameters():
     }
     with pytest.raises(ValueError, match="needs parameter"):
         M.full_parameters("plasticine", {"youngs_modulus": 1e5, "poissons_ratio": 0.4})
+    with pytest.raises(ValueError, match="unphysical"):
+        M.full_parameters("jelly", {"youngs_modulus": 1e5, "poissons_ratio": 0.5})
+    with pytest.raises(ValueError, match="unphysical"):
+        M.full_parameters("sand", {"friction_angle": 30.0})  # degrees by mistake
 
 
 def test_elastic_laws_match_numpy():

@@ -157,6 +157,18 @@ def full_parameters(family: str, parameters: dict[str, float]) -> dict[str, floa
     missing = [n for n in FAMILY_PARAMETERS[family] if n not in out]
     if missing:
         raise ValueError(f"{family} needs parameter(s) {missing} (SI units, radians for friction_angle)")
+    # Values outside the sampling ranges are allowed (e.g. re-simulating predictions), unphysical ones not.
+    valid = {
+        "youngs_modulus": lambda v: v > 0.0,
+        "poissons_ratio": lambda v: -1.0 < v < 0.5,
+        "yield_stress": lambda v: v > 0.0,
+        "friction_angle": lambda v: 0.0 <= v < math.pi / 2,
+    }
+    bad = {n: v for n, v in out.items() if not (math.isfinite(v) and valid[n](v))}
+    if bad:
+        raise ValueError(
+            f"{family}: unphysical parameter(s) {bad}; need E > 0, -1 < nu < 0.5, yield > 0, 0 <= phi < pi/2 (radians)"
+        )
     return out
 
 

@@ -472,10 +472,10 @@ def simulate(
     rec_counts = np.array([len(r) for r in records], dtype=np.int64)
     rec_offsets = np.concatenate([[0], np.cumsum(rec_counts)])
 
-    substeps = np.array([scene_substeps(s, frame_interval) for s in scenes], dtype=np.int32)
-    params = [full_parameters(s.family, s.parameters) for s in scenes]
-    lame_pairs = [lame(p["youngs_modulus"], p["poissons_ratio"]) for p in params]
     velocities = np.concatenate([_initial_velocity(s, n, i) for i, (s, n) in enumerate(zip(scenes, counts))])
+    params = [full_parameters(s.family, s.parameters) for s in scenes]
+    substeps = np.array([scene_substeps(s, frame_interval) for s in scenes], dtype=np.int32)
+    lame_pairs = [lame(p["youngs_modulus"], p["poissons_ratio"]) for p in params]
     num_scenes, total = len(scenes), int(offsets[-1])
     scene_ids = np.repeat(np.arange(num_scenes), counts)
     order = spatial_order(np.concatenate(positions), scene_ids)
