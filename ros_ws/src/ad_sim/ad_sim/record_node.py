@@ -124,7 +124,11 @@ class RecordNode(Node):
             received_ns = time.time_ns()
             self.received[topic] += 1
             log_time = header_stamp_ns(data) if use_header else received_ns
-            self.writer.write(topic, log_time, data, publish_time_ns=received_ns)
+            try:
+                self.writer.write(topic, log_time, data, publish_time_ns=received_ns)
+            except (BagError, OSError) as exc:  # e.g. a full disk: keep counting, say why it is lost
+                self.get_logger().error(f"message on {topic} not written: {exc}", throttle_duration_sec=5.0)
+                return
             self.written[topic] += 1
             self._unflushed = True
 

@@ -41,6 +41,7 @@ from rclpy.signals import SignalHandlerOptions
 from . import materials, messages
 
 FAST_HEARTBEAT_PROFILE = Path(__file__).resolve().parent / "data" / "dds" / "fast_heartbeat.xml"
+LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
 
@@ -276,10 +277,11 @@ class SimNode(Node):
             for topic, stamp, data in messages.episode_messages(episode, index, prefix=self.prefix, frame_prefix=frame_prefix):
                 if self.stop.is_set():
                     break
-                if stamp != last_stamp and self.rate > 0:  # a new frame
-                        if clock_start is None or time.monotonic() > clock_start + stamp / 1e9 / self.rate + 0.5:
-                            clock_start = time.monotonic() - stamp / 1e9 / self.rate  # start, or fell behind
-                        self._sleep_until(clock_start + stamp / 1e9 / self.rate)
+                if self.rate > 0 and stamp != last_stamp:  # a new frame: wait for its wall time
+                    offset = stamp / 1e9 / self.rate
+                    if clock_start is None or time.monotonic() > clock_start + offset + LATE_RESTART:
+                        clock_start = time.monotonic() - offset  # first frame, or the simulation fell behind
+                    self._sleep_until(clock_start + offset)
                 last_stamp = stamp
                 self.sim_publishers.publish(topic, data)
             index += 1
