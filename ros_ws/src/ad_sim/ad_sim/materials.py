@@ -73,11 +73,11 @@ PARAMETER_RANGES: dict[str, tuple[float, float, str]] = {
     "friction_angle": (_PHI_LO, _PHI_HI, "linear"),
 }
 
-# Integer codes used inside kernels.
-JELLY = wp.constant(0)
-PLASTICINE = wp.constant(1)
-SAND = wp.constant(2)
-FAMILY_CODES = {"jelly": 0, "plasticine": 1, "sand": 2}
+# Integer family codes used inside kernels (index into FAMILIES).
+FAMILY_CODES = {family: code for code, family in enumerate(FAMILIES)}
+JELLY = wp.constant(FAMILY_CODES["jelly"])
+PLASTICINE = wp.constant(FAMILY_CODES["plasticine"])
+SAND = wp.constant(FAMILY_CODES["sand"])
 
 
 def _check_family(family: str) -> None:
