@@ -13,10 +13,9 @@ import time
 import numpy as np
 import pytest
 import yaml
-from ros_procs import ADRUN, REPO_ROOT, recorder_counts, start, stop, wait_for_log
+from ros_procs import ADRUN, REPO_ROOT, recorder_counts, start, stop
 from sim_fixtures import as_plain
 
-from ad_sim import messages
 from ad_sim.rosbag import BagReader
 
 pytestmark = pytest.mark.ros
