@@ -419,14 +419,17 @@ def _initial_velocity(scene: Scene, count: int, number: int) -> np.ndarray:
     return np.broadcast_to(vel, (count, 3))
 
 
+# Bits of a cell coordinate spread three apart, for Morton codes by table lookup.
+_MORTON_SPREAD = np.array(
+    [sum(((c >> bit) & 1) << (3 * bit) for bit in range((GRID_RESOLUTION - 1).bit_length())) for c in range(GRID_RESOLUTION)],
+    dtype=np.int64,
+)
+
+
 def _morton_cells(points: np.ndarray) -> np.ndarray:
     """Morton (Z-order) code of the grid cell of each point: nearby cells get nearby codes."""
     cells = np.clip((points * GRID_RESOLUTION).astype(np.int64), 0, GRID_RESOLUTION - 1)
-    code = np.zeros(len(points), dtype=np.int64)
-    for bit in range(int(math.log2(GRID_RESOLUTION))):
-        for axis in range(3):
-            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
-    return code
+    return _MORTON_SPREAD[cells[:, 0]] | (_MORTON_SPREAD[cells[:, 1]] << 1) | (_MORTON_SPREAD[cells[:, 2]] << 2)
 
 
 def spatial_order(points: np.ndarray, scene_ids: np.ndarray) -> np.ndarray:
@@ -490,7 +493,7 @@ def simulate(
         x = wp.array(np.concatenate(positions)[order], dtype=wp.vec3)
         v = wp.array(velocities[order], dtype=wp.vec3)
         C = wp.zeros(total, dtype=wp.mat33)
-        F = wp.array(np.broadcast_to(np.eye(3, dtype=np.float32), (total, 3, 3)).copy(), dtype=wp.mat33)
+        F = wp.full(total, wp.mat33(np.eye(3, dtype=np.float32)), dtype=wp.mat33)
         stress = wp.zeros(total, dtype=wp.mat33)
         scene_of = i32(scene_ids[order])
         n_sub = i32(substeps)
