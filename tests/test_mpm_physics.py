@@ -22,6 +22,8 @@ from ad_sim.mpm import (
 
 wp.config.quiet = True
 SPACING = DX / 2  # 8 particles per grid cell
+SOFT_JELLY = {"youngs_modulus": 3e4, "poissons_ratio": 0.25}
+PLASTICINE = {"youngs_modulus": 2e5, "poissons_ratio": 0.45, "yield_stress": 2e3}
 
 
 def lattice(inside, lo, hi, spacing=SPACING):
@@ -101,7 +103,8 @@ def _rigid_residual(a, b):
 def test_jelly_rebounds_keeps_shape_and_stiffer_deforms_less():
     pts = box((0.5, 0.5, 0.25), (0.16, 0.16, 0.16))
     moduli = (2e4, 1e5, 5e5)
-    results = simulate([scene(pts, "jelly", {"youngs_modulus": E, "poissons_ratio": 0.3}) for E in moduli], frame_count=15)
+    scenes = [scene(pts, "jelly", {"youngs_modulus": E, "poissons_ratio": 0.3}) for E in moduli]
+    results = simulate(scenes, frame_count=15)
     squash = []
     for res in results:
         z = res.positions[..., 2]
@@ -202,8 +205,8 @@ def test_extreme_parameter_corners_stay_finite_and_inside():
 
 def test_batched_equals_one_at_a_time_and_is_deterministic():
     scenes = [
-        scene(sphere((0.3, 0.4, 0.3), 0.07), "jelly", {"youngs_modulus": 3e4, "poissons_ratio": 0.25}, velocity=(1, 0, 0)),
-        scene(box((0.6, 0.6, 0.2), (0.1, 0.12, 0.08)), "plasticine", {"youngs_modulus": 2e5, "poissons_ratio": 0.45, "yield_stress": 2e3}),
+        scene(sphere((0.3, 0.4, 0.3), 0.07), "jelly", SOFT_JELLY, velocity=(1, 0, 0)),
+        scene(box((0.6, 0.6, 0.2), (0.1, 0.12, 0.08)), "plasticine", PLASTICINE),
         scene(box((0.5, 0.5, 0.15), (0.2, 0.2, 0.04)), "sand", {"friction_angle": 0.6}, record=np.array([5, 0, 17])),
     ]
     batched = simulate(scenes, frame_count=8)
@@ -230,7 +233,7 @@ def test_rejects_particles_outside_the_domain():
 def test_shared_memory_p2g_matches_plain_p2g():
     """The CUDA P2G (shared-memory patches) run on Warp's CPU block emulation equals the plain P2G."""
     scenes = [
-        scene(sphere((0.3, 0.4, 0.3), 0.07), "jelly", {"youngs_modulus": 3e4, "poissons_ratio": 0.25}, velocity=(1, 0, 0)),
+        scene(sphere((0.3, 0.4, 0.3), 0.07), "jelly", SOFT_JELLY, velocity=(1, 0, 0)),
         # A thin wide slab: some blocks span more than a patch (and one block spans both scenes),
         # so the global-atomics fallback is exercised too (~300 of 2405 particles at t = 0).
         scene(box((0.5, 0.5, 0.15), (0.4, 0.4, 0.04)), "sand", {"friction_angle": 0.6}),

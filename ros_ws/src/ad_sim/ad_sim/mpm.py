@@ -370,9 +370,8 @@ def g2p(
     v[p] = new_v
     C[p] = new_C
     nx = x[p] + h * new_v
-    x[p] = wp.vec3(
-        wp.clamp(nx[0], _CLAMP_LO, _CLAMP_HI), wp.clamp(nx[1], _CLAMP_LO, _CLAMP_HI), wp.clamp(nx[2], _CLAMP_LO, _CLAMP_HI)
-    )
+    lo, hi = _CLAMP_LO, _CLAMP_HI
+    x[p] = wp.vec3(wp.clamp(nx[0], lo, hi), wp.clamp(nx[1], lo, hi), wp.clamp(nx[2], lo, hi))
     # Deformation update, plastic return mapping, then the stress the next P2G will use (one SVD).
     f_trial = (wp.identity(n=3, dtype=float) + h * new_C) * F[p]
     fam = family[s]
@@ -420,9 +419,9 @@ def _initial_velocity(scene: Scene, count: int, number: int) -> np.ndarray:
 
 
 # Bits of a cell coordinate spread three apart, for Morton codes by table lookup.
+_MORTON_BITS = (GRID_RESOLUTION - 1).bit_length()
 _MORTON_SPREAD = np.array(
-    [sum(((c >> bit) & 1) << (3 * bit) for bit in range((GRID_RESOLUTION - 1).bit_length())) for c in range(GRID_RESOLUTION)],
-    dtype=np.int64,
+    [sum(((c >> b) & 1) << (3 * b) for b in range(_MORTON_BITS)) for c in range(GRID_RESOLUTION)], dtype=np.int64
 )
 
 
