@@ -64,9 +64,11 @@ def test_replay_keeps_bytes_timing_and_qos(test_bag, ros_domain_id):
         assert stamp_ns(got.header.stamp) == stamp and bytes(got.data) == want.data
     assert [i.episode_id for i in instances] == [f"test-disc-{m}-{k:04d}" for k, m in
                                                  enumerate(["jelly", "plasticine", "sand"])]
-    # episodes start 1.5 s apart in the bag: 0.75 s apart at rate 2
+    # episodes start 1.5 s apart in the bag: 0.75 s apart at rate 2; the whole bag spans 3.6 s: 1.8 s
+    # (loose bounds: CI machines are busy, and a late replay catches up rather than drifting)
     starts = [frames[25 * k][0] for k in range(3)]
-    assert np.allclose(np.diff(starts), 0.75, atol=0.15), np.diff(starts)
+    assert np.allclose(np.diff(starts), 0.75, atol=0.3), np.diff(starts)
+    assert abs(frames[-1][0] - frames[0][0] - 1.8) < 0.3
 
 
 @pytest.mark.parametrize("content", [b"\x89MCAP0\r\n" + b"\x01" * 64, b"garbage"], ids=["bad_records", "not_mcap"])
@@ -110,27 +112,34 @@ def test_live_path_equals_offline_path(tmp_path, ros_domain_id):
                                      lambda m: instances.setdefault(stamp_ns(m.header.stamp), m), LATCHED)
         executor.add_node(listener)
         estimator = run("ad_estimator.node", "--ros-args", "-p", f"model_path:={model}", "-p", "reliable:=true")
+        live = {}
         try:
             assert wait_for(lambda: listener.count_publishers("/ad_estimator/estimate") > 0, timeout=30)
-            for bag in bags:
+            for bag in bags:  # one at a time: every bag's stamps start at 0
+                expected = [p for p in offline if p["bag"] == str(bag)]
                 replay = run("ad_estimator.replay", str(bag), "--rate", "3", "--quiet", "--wait-for", MASK_TOPIC)
                 out, _ = replay.communicate(timeout=120)
                 assert replay.returncode == 0, out
-            assert wait_for(lambda: len(estimates) >= len(offline), timeout=20), (len(estimates), len(offline))
-            time.sleep(0.5)
+                assert wait_for(lambda: len(estimates) >= len(expected), timeout=20), (len(estimates), bag)
+                time.sleep(0.3)
+                live[bag] = (list(estimates), dict(instances))
+                estimates.clear()
+                instances.clear()
         finally:
             estimator.terminate()
             log = estimator.communicate(timeout=20)[0]
         assert estimator.returncode == 0, log
 
-    assert len(estimates) == len(offline)
-    by_start = {p["oldest_stamp_ns"]: p for p in offline}
-    for live in estimates:
-        expected = by_start[stamp_ns(live.oldest_stamp)]
-        truth = instances[stamp_ns(live.oldest_stamp)]  # ground truth of the episode, stamped at its frame 0
-        assert truth.episode_id == expected["episode_id"] and truth.material == expected["true_material"]
-        assert live.complete and live.frames_used == expected["frames_used"] == 25
-        assert stamp_ns(live.header.stamp) == expected["newest_stamp_ns"]
-        assert live.material == expected["material"]
-        np.testing.assert_allclose(live.class_probabilities, expected["probabilities"], rtol=1e-5)
-        np.testing.assert_allclose(live.parameters, expected["parameters"], rtol=1e-5)
+    for bag, (bag_estimates, bag_instances) in live.items():
+        expected_by_start = {p["oldest_stamp_ns"]: p for p in offline if p["bag"] == str(bag)}
+        assert len(bag_estimates) == len(expected_by_start)
+        for estimate in bag_estimates:
+            start = stamp_ns(estimate.oldest_stamp)
+            expected = expected_by_start[start]
+            truth = bag_instances[start]  # ground truth of the episode, stamped at its frame 0
+            assert truth.episode_id == expected["episode_id"] and truth.material == expected["true_material"]
+            assert estimate.complete and estimate.frames_used == expected["frames_used"] == 25
+            assert stamp_ns(estimate.header.stamp) == expected["newest_stamp_ns"]
+            assert estimate.material == expected["material"]
+            np.testing.assert_allclose(estimate.class_probabilities, expected["probabilities"], rtol=1e-5)
+            np.testing.assert_allclose(estimate.parameters, expected["parameters"], rtol=1e-5)

@@ -33,6 +33,7 @@ class EpisodePrediction:
     """One episode's ground truth and the model's estimate from its first `frames` frames."""
 
     episode_id: str
+    bag: str
     frames: int  # frames observed
     true_material: str
     true_parameters: dict[str, float]
@@ -71,7 +72,7 @@ def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC):
         yield episode.instance, frames
 
 
-def predict_episode(model: EstimatorModel, instance, frames, observed: int,
+def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed: int,
                     slot_tolerance: float = DEFAULT_SLOT_TOLERANCE,
                     threshold: int = DEFAULT_THRESHOLD) -> EpisodePrediction | None:
     frames = frames[:observed]
@@ -82,7 +83,7 @@ def predict_episode(model: EstimatorModel, instance, frames, observed: int,
                       model.info.frame_count, slot_tolerance)
     estimate = model.predict(out.features, out.valid)
     return EpisodePrediction(
-        episode_id=instance.episode_id, frames=observed, true_material=instance.material,
+        episode_id=instance.episode_id, bag=str(bag), frames=observed, true_material=instance.material,
         true_parameters=dict(zip(instance.parameter_names, (float(v) for v in instance.parameters))),
         material=estimate.material, probabilities=estimate.probabilities.tolist(),
         parameters=estimate.parameters.tolist(), raw_parameters=estimate.raw_parameters.tolist(),
@@ -115,7 +116,7 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
         for bag in bags:
             for instance, frames in episode_frames(bag, mask_topic):
                 for k in frame_counts:
-                    prediction = predict_episode(model, instance, frames, k)
+                    prediction = predict_episode(model, bag, instance, frames, k)
                     if prediction is not None:
                         results[k].append(prediction)
                 bar.update()
