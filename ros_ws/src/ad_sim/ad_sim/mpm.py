@@ -487,6 +487,9 @@ def simulate(
     with wp.ScopedDevice(device):
         if shared_p2g is None:
             shared_p2g = wp.get_device().is_cuda
+        if shared_p2g and wp.get_device().is_cpu and not wp.config.enable_cpu_blocks:
+            # Without CPU blocks a tiled launch runs one lane per block and would skip particles.
+            raise ValueError("shared_p2g on CPU needs warp.config.enable_cpu_blocks = True")
         f32 = lambda a: wp.array(np.asarray(a, dtype=np.float32), dtype=float)  # noqa: E731
         i32 = lambda a: wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32)  # noqa: E731
         x = wp.array(np.concatenate(positions)[order], dtype=wp.vec3)
