@@ -28,9 +28,10 @@ from .render import (
     render_masks,
 )
 
-# Scenes per solver launch: on a GPU many scenes share a launch; on CPU large batches only
-# waste the iterations of scenes that need fewer substeps than the stiffest one.
-MAX_BATCH = {"cpu": 16, "cuda": 1024}
+# Scenes per solver launch: on a GPU ~256 scenes grouped by substeps is the solver's sweet spot
+# (docs/simulator.md); on CPU large batches only waste the iterations of scenes that need fewer
+# substeps than the stiffest one.
+MAX_BATCH = {"cpu": 16, "cuda": 256}
 
 
 @dataclass
