@@ -51,7 +51,7 @@ def test_help_list_shapes_and_argument_errors(capsys):
 
 @pytest.mark.ros
 def test_resume_after_kill_gives_the_uninterrupted_bags(tmp_path):
-    args = ["--size", "tiny", "--split", "unseen", "--limit", "4", "--shards", "2", "--batch", "1"]
+    args = ["--size", "tiny", "--split", "unseen", "--limit", "2", "--shards", "2", "--batch", "1"]
     uninterrupted = generate(*args, "--out", str(tmp_path / "a"))
     assert uninterrupted.wait(300) == 0, uninterrupted.stdout.read()
 
@@ -80,8 +80,7 @@ def test_resume_after_kill_gives_the_uninterrupted_bags(tmp_path):
         for shard in ("unseen-0of2", "unseen-1of2")
         for e in group_episodes(BagReader(tmp_path / "a" / shard, topics=["/ad_sim/instance"]))
     ]
-    assert len(ids) == len(set(ids)) == 4  # each instance in exactly one shard
-    assert {i.split("-")[2] for i in ids} == {"jelly", "plasticine", "sand"}
+    assert sorted(ids) == ["unseen-arch-jelly-0000", "unseen-arch-plasticine-0000"]  # each in exactly one shard
 
 
 @pytest.mark.ros
