@@ -2,15 +2,19 @@
 
 - `ros` marker: the test needs the built workspace (ad_msgs typesupport, ament index). Such tests
   FAIL with instructions when it is missing; they never skip.
-- `rclpy_context`: an initialised rclpy Context on a ROS domain of its own, also exported as
-  ROS_DOMAIN_ID so that subprocesses started by the test (nodes via scripts/adrun) join it.
+- `ros_domain_id`: a ROS domain that no other test on this machine holds while this one runs,
+  exported as ROS_DOMAIN_ID so that subprocesses started by the test (nodes via scripts/adrun)
+  join it. Every test that starts a node must use it (or `rclpy_context`, which does).
+- `rclpy_context`: an initialised rclpy Context on that domain.
 """
 
 from __future__ import annotations
 
+import fcntl
 import importlib
 import itertools
 import os
+import tempfile
 from functools import lru_cache
 from pathlib import Path
 
@@ -23,11 +27,14 @@ BUILD_HINT = "run ./setup.sh and source env.sh first (scripts/test.sh does both)
 # DDS discovery stays on this machine; before any rclpy import initialises a context.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
-# Domains 1..100 are valid for DDS on Linux; start from the run's ROS_DOMAIN_ID (scripts/test.sh
-# picks a random one) so that concurrent runs on one machine rarely collide, then give every
-# rclpy_context the next one so that a node left over from one test cannot talk to the next.
-_RUN_DOMAIN = int(os.environ.get("ROS_DOMAIN_ID", os.getpid() % 100 + 1))
-_domains = (((_RUN_DOMAIN - 1 + offset) % 100) + 1 for offset in itertools.count())
+# Domains 1..100 are valid for DDS on Linux. Tests take them in turn from the run's ROS_DOMAIN_ID
+# (scripts/test.sh picks a random one), so that a node left over from one test cannot talk to the
+# next, and each holds a lock file for its domain, so that concurrent runs on one machine never share
+# one (the kernel drops the lock if the process dies).
+DOMAIN_COUNT = 100
+DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "ad-ros-domain-locks"
+_RUN_DOMAIN = int(os.environ.get("ROS_DOMAIN_ID", os.getpid() % DOMAIN_COUNT + 1))
+_domains = (((_RUN_DOMAIN - 1 + offset) % DOMAIN_COUNT) + 1 for offset in itertools.count())
 
 
 @lru_cache(maxsize=None)
@@ -54,11 +61,22 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 
 
 @pytest.fixture
-def ros_domain_id(monkeypatch: pytest.MonkeyPatch) -> int:
+def ros_domain_id(monkeypatch: pytest.MonkeyPatch):
     """A ROS domain for this test alone, exported as ROS_DOMAIN_ID for the subprocesses it starts."""
-    domain = next(_domains)
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
-    return domain
+    DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
+    for _ in range(DOMAIN_COUNT):
+        domain = next(_domains)
+        lock = open(DOMAIN_LOCK_DIR / f"{domain}.lock", "w")
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.close()  # another test on this machine is using it
+            continue
+        with lock:
+            monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+            yield domain
+        return
+    pytest.fail(f"all {DOMAIN_COUNT} ROS domains are held by running tests (locks in {DOMAIN_LOCK_DIR})")
 
 
 @pytest.fixture

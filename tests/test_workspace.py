@@ -93,8 +93,9 @@ def test_adrun_lists_and_rejects():
 @pytest.mark.parametrize(
     "package, executable", [(package, exe) for package, exes in EXECUTABLES.items() for exe in exes]
 )
-def test_adrun_runs_executable_help(package, executable):
-    # Every CLI answers --help; this also proves adrun finds and execs the installed script.
+def test_adrun_runs_executable_help(package, executable, ros_domain_id):
+    # Every CLI answers --help; this also proves adrun finds and execs the installed script. On a
+    # domain of its own, in case an executable starts a node instead.
     result = run([str(ADRUN), package, executable, "--help"], timeout=30)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "usage" in result.stdout.lower()
@@ -267,6 +268,15 @@ def test_rclpy_context_receives_from_another_process(rclpy_context, ros_domain_i
         node.destroy_node()
     assert received, "no SimInstance arrived from the publisher process within 25 s"
     assert same(received[0], sim_instance())
+
+
+def test_ros_domain_is_held_exclusively(ros_domain_id):
+    from conftest import DOMAIN_LOCK_DIR
+
+    # Another process (a concurrent test run) cannot claim the domain while this test holds it.
+    probe = f"import fcntl; fcntl.flock(open({str(DOMAIN_LOCK_DIR / f'{ros_domain_id}.lock')!r}, 'w'), fcntl.LOCK_EX | fcntl.LOCK_NB)"
+    result = run([sys.executable, "-c", probe], timeout=30)
+    assert result.returncode != 0 and "BlockingIOError" in result.stderr
 
 
 # --- package data as found at run time ------------------------------------------------------------
