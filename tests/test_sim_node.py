@@ -103,7 +103,15 @@ def test_pacing_and_clean_shutdown(rclpy_context, ros_domain_id, tmp_path):
         listener.destroy_node()
 
 
-def test_node_reports_bad_parameters(ros_domain_id, tmp_path):
+def test_single_instance_from_parameters_and_bad_parameters(ros_domain_id, tmp_path):
+    node = start(
+        "node", ros_domain_id, tmp_path / "one.log", shape="sphere", material="sand",
+        friction_angle=0.5, instance_seed=9, real_time_factor=0.0,
+    )
+    assert node.wait(120) == 0, (tmp_path / "one.log").read_text()
+    log = (tmp_path / "one.log").read_text()
+    assert "episode 0: custom-sphere-sand-0000 (sphere, sand: youngs_modulus=1e+05, poissons_ratio=0.3, friction_angle=0.5)" in log
+    assert "published 1 episode(s), 76 messages" in log
     node = start("node", ros_domain_id, tmp_path / "bad.log", instances=str(tmp_path / "missing.yaml"))
     assert node.wait(60) == 2
     assert "missing.yaml" in (tmp_path / "bad.log").read_text()
