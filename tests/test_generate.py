@@ -11,6 +11,8 @@ import time
 
 import pytest
 import yaml
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from ros_procs import ADRUN, REPO_ROOT
 
 from ad_sim import messages
@@ -132,5 +134,16 @@ def test_committed_sample_bags():
                 clouds = episode.messages["/ad_sim/particles"]
                 assert len(clouds) == 25 and all(c.width == 1024 and c.point_step == 60 for _, c in clouds)
     assert families == {"jelly", "plasticine", "sand"}
+    # The independent reader too, with the types from the bags' own schemas.
+    for bag in bags:
+        typestore = get_typestore(Stores.EMPTY)
+        with AnyReader([bag], default_typestore=typestore) as reader:
+            for connection in reader.connections:
+                typestore.register(get_types_from_msg(connection.msgdef.data, connection.msgtype))
+            names = [
+                typestore.deserialize_cdr(data, connection.msgtype).shape
+                for connection, _, data in reader.messages(connections=[c for c in reader.connections if c.topic == "/ad_sim/instance"])
+            ]
+        assert names == [e.instance.shape for e in group_episodes(BagReader(bag, topics=["/ad_sim/instance"]))]
     masks_bag = [e.instance.shape for e in group_episodes(BagReader(bags[0], topics=["/ad_sim/instance"]))]
     assert sorted(set(masks_bag)) == sorted(benchmark_shapes("unseen", "tiny")) and len(masks_bag) == 6
