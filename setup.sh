@@ -51,14 +51,19 @@ if stamp_matches "$STAMP_DIR/requirements" "$REQ_HASH"; then
 else
     step "installing requirements.txt into $VENV"
     # torch first and pinned: pip then takes the CPU build on disk, never the CUDA one.
-    "$VENV_PY" -m pip install --disable-pip-version-check torch==2.13.0
-    "$VENV_PY" -m pip install --disable-pip-version-check -r "$ROOT/requirements.txt"
+    "$VENV_PY" -m pip install --disable-pip-version-check torch==2.13.0 \
+        || die "pip could not install torch==2.13.0 (see above)"
+    "$VENV_PY" -m pip install --disable-pip-version-check -r "$ROOT/requirements.txt" \
+        || die "pip could not install requirements.txt (see above; PyPI must be reachable)"
     echo "$REQ_HASH" > "$STAMP_DIR/requirements"
 fi
 
 # 3. Repair the wheels' CMake exports and make the venv a ROS underlay -----------------------
-step "repairing ROS wheel CMake exports"
-"$VENV_PY" "$ROOT/scripts/repair_ros_cmake.py" "$VENV"
+REPAIRED="$("$VENV_PY" "$ROOT/scripts/repair_ros_cmake.py" "$VENV")" || die "repairing the ROS CMake exports failed"
+case "$REPAIRED" in
+    "repaired 0 "*) skip "ROS wheel CMake exports" ;;
+    *) step "repairing ROS wheel CMake exports"; echo "    $REPAIRED" ;;
+esac
 
 # colcon chains every AMENT_PREFIX_PATH entry that has local_setup.* into ros_ws/install/setup.*,
 # so these files make `source ros_ws/install/setup.bash` alone give the full ROS environment,
