@@ -11,6 +11,7 @@ from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 ADRUN = REPO_ROOT / "scripts" / "adrun"
+_started: list[subprocess.Popen] = []
 
 
 def start(executable: str, domain: int, log: Path, **params) -> subprocess.Popen:
@@ -23,7 +24,18 @@ def start(executable: str, domain: int, log: Path, **params) -> subprocess.Popen
             value = "[" + ",".join(f"'{v}'" for v in value) + "]"
         args += ["-p", f"{name}:={value}"]
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0")
-    return subprocess.Popen(args, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT)
+    process = subprocess.Popen(args, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT)
+    _started.append(process)
+    return process
+
+
+def kill_leftovers() -> None:
+    """Kill the processes start() launched that still run (a test failed before stopping them)."""
+    while _started:
+        process = _started.pop()
+        if process.poll() is None:
+            process.kill()
+            process.wait()
 
 
 def wait_for_log(log: Path, pattern: str, process: subprocess.Popen, timeout: float = 60.0) -> re.Match:

@@ -12,13 +12,19 @@ import time
 
 import pytest
 from mcap.reader import make_reader
-from ros_procs import recorder_counts, start, stop, wait_for_log
+from ros_procs import kill_leftovers, recorder_counts, start, stop, wait_for_log
 from sim_fixtures import as_plain, fabricated_episode
 
 from ad_sim import messages
 from ad_sim.rosbag import BagError, BagReader
 
 pytestmark = pytest.mark.ros
+
+
+@pytest.fixture(autouse=True)
+def no_leftover_processes():
+    yield
+    kill_leftovers()
 EPISODES = 2
 
 

@@ -13,12 +13,18 @@ import time
 import numpy as np
 import pytest
 import yaml
-from ros_procs import ADRUN, REPO_ROOT, recorder_counts, start, stop
+from ros_procs import kill_leftovers, ADRUN, REPO_ROOT, recorder_counts, start, stop
 from sim_fixtures import as_plain
 
 from ad_sim.rosbag import BagReader
 
 pytestmark = pytest.mark.ros
+
+
+@pytest.fixture(autouse=True)
+def no_leftover_processes():
+    yield
+    kill_leftovers()
 
 INSTANCES = [
     {"shape": "sphere", "material": "jelly", "parameters": {"youngs_modulus": 5.0e4, "poissons_ratio": 0.3}, "seed": 1},
