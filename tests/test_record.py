@@ -95,7 +95,7 @@ def test_sigterm_finalises_and_kill9_keeps_flushed_chunks(rclpy_context, ros_dom
     items = episode_items()
     publisher = Publisher(rclpy_context)
     try:
-        terminated = start("record", ros_domain_id, tmp_path / "term.log", output=str(tmp_path / "term"))
+        terminated = start("record", ros_domain_id, tmp_path / "term.log", output=str(tmp_path / "term"), max_bag_size=1_000_000)
         killed = start("record", ros_domain_id, tmp_path / "kill.log", output=str(tmp_path / "kill"), flush_period=0.2)
         publisher.wait_for_subscribers(count=2)
         published = publisher.publish(items)
@@ -109,6 +109,7 @@ def test_sigterm_finalises_and_kill9_keeps_flushed_chunks(rclpy_context, ros_dom
     log = (tmp_path / "term.log").read_text()
     assert "Traceback" not in log and recorder_counts(log) == (published, published)
     assert len(list(BagReader(tmp_path / "term"))) == published  # finalised: reads without recover
+    assert len(list((tmp_path / "term").glob("*.mcap"))) >= 2  # split by max_bag_size
     with pytest.raises(BagError, match="truncated"):
         list(BagReader(tmp_path / "kill"))
     with pytest.warns(UserWarning, match="truncated"):
