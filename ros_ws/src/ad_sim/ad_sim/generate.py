@@ -48,11 +48,8 @@ def _file_digests(folder: Path) -> dict[str, str]:
 
 def write_episodes(
     writer: BagWriter, episodes, first_index: int, prefix: str = messages.DEFAULT_PREFIX, skip: frozenset[str] = frozenset()
-) -> int:
-    """Write episodes to an open bag, numbering them from first_index; returns messages written.
-
-    Topics in `skip` are left out."""
-    written = 0
+) -> None:
+    """Write episodes to an open bag, numbering them from first_index; topics in `skip` are left out."""
     for offset, episode in enumerate(episodes):
         types = messages.topic_types(len(episode.cameras), prefix)
         for topic, stamp, message in messages.episode_messages(episode, first_index + offset, prefix=prefix):
@@ -61,8 +58,6 @@ def write_episodes(
             if not writer.has_topic(topic):
                 writer.add_topic(topic, types[topic], [qos_profile(**messages.topic_qos(topic, prefix))])
             writer.write(topic, stamp, message)
-            written += 1
-    return written
 
 
 def generate_shard(
@@ -96,7 +91,9 @@ def generate_shard(
             bar.update(len(episodes))
     writer.close()
     done = {"episodes": len(instances), "messages": writer.message_count, "sha256": _file_digests(folder)}
-    (folder / DONE_MARKER).write_text(json.dumps(done, indent=2) + "\n")
+    marker = folder / DONE_MARKER
+    marker.with_suffix(".tmp").write_text(json.dumps(done, indent=2) + "\n")
+    marker.with_suffix(".tmp").replace(marker)  # atomic: a kill never leaves a half-written marker
     return True
 
 
