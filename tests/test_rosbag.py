@@ -245,7 +245,7 @@ def test_killed_writer_leaves_flushed_chunks_readable(tmp_path):
     script = textwrap.dedent(
         f"""
         import sys, time
-        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        sys.path[:0] = [{str(Path(__file__).parent)!r}, {str(Path(__file__).parents[1] / "ros_ws" / "src" / "ad_sim")!r}]
         from sim_fixtures import fabricated_episode
         from ad_sim.generate import write_episodes
         from ad_sim.rosbag import BagWriter
