@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from ad_estimator.metrics import Predictions, compute_metrics, format_table
 from ad_sim.instances import Instance, benchmark
-from ad_sim.materials import FAMILIES, FAMILY_RANGES, PARAMETER_NAMES, SAMPLED_PARAMETERS, full_parameters
+from ad_sim.materials import FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS, full_parameters
 from ad_sim.resimulate import mask_mse, psnr_from_mse, resimulate
 
 log = logging.getLogger(__name__)
@@ -48,7 +48,7 @@ def to_unit(family: str, parameters: dict[str, float]) -> np.ndarray:
 
 
 def from_unit(family: str, unit) -> dict[str, float]:
-    """Inverse of to_unit: a point of [0, 1]^d -> the family's sampled parameters (SI)."""
+    """Inverse of to_unit: a point of [0, 1]^d -> the family's sampled parameters (SI); extra coordinates are ignored."""
     out = {}
     for name, u in zip(SAMPLED_PARAMETERS[family], np.asarray(unit, dtype=np.float64)):
         low, high, scale = FAMILY_RANGES[family][name]
@@ -110,7 +110,9 @@ def fit_instances(
     for chunk in chunks:
         start = time.perf_counter()
         families = [instances[i].material for i in chunk]
-        starts = [np.full(len(SAMPLED_PARAMETERS[family]), 0.5) for family in families]  # middle of every range
+        # Middle of every range. cma fails in 1-D, so sand's friction angle is searched in 2-D with a
+        # second coordinate that from_unit ignores (the loss is flat along it).
+        starts = [np.full(max(2, len(SAMPLED_PARAMETERS[family])), 0.5) for family in families]
         strategies = [
             cma.CMAEvolutionStrategy(x0, sigma0, {"bounds": [0.0, 1.0], "popsize": popsize, "verbose": -9,
                                                   "seed": cma_seed(seed, instances[i].episode_id)})
@@ -144,6 +146,7 @@ def fit_instances(
         seconds = (time.perf_counter() - start) / len(chunk)
         for k, i in enumerate(chunk):
             loss, unit = best[k]
+            unit = unit[: len(SAMPLED_PARAMETERS[families[k]])]
             fits.append(Fit(instances[i].episode_id, families[k], from_unit(families[k], unit), unit.tolist(), loss,
                             initial[k], histories[k], generations * popsize + 1, seconds))
     bar.close()
@@ -172,21 +175,25 @@ def select(count: int, total: int, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(total, size=count, replace=False))
 
 
-def observed_from_bags(bags: str, cache: str) -> tuple[list[Instance], np.ndarray]:
-    """Instances (from each episode's SimInstance ground truth) and their recorded camera-0 videos."""
-    from training import data
+def observed_from_bags(bags: str) -> tuple[list[Instance], np.ndarray]:
+    """Instances (from each episode's /ad_sim/instance ground truth) and their recorded camera-0
+    mask videos, from every bag under `bags`; episodes without all FRAME_COUNT frames are skipped."""
+    from ad_estimator.evaluate import MAX_IMAGE_PIXELS, episode_frames, find_bags
+    from ad_estimator.images import image_to_mask
 
-    ds = data.load_dataset(bags, cache)
     instances, videos = [], []
-    for j in ds.first_view_videos():
-        i = int(ds.video_instance[j])
-        if ds.video_view[j] != FIT_VIEW:
-            raise ValueError(f"{ds.episode_ids[i]}: the bag has no view {FIT_VIEW} video; the baseline fits camera {FIT_VIEW}")
-        family = ds.meta["material"][i]
-        sampled = {n: float(ds.params_si[i, PARAMETER_NAMES.index(n)]) for n in SAMPLED_PARAMETERS[family]}
-        instances.append(Instance(ds.episode_ids[i], ds.meta["split"][i], ds.meta["shape"][i], family,
-                                  full_parameters(family, sampled), int(ds.meta["seed"][i])))
-        videos.append(ds.video(int(j)))
+    for bag in find_bags([Path(bags)]):
+        for msg, frames in episode_frames(bag, f"/ad_sim/view_{FIT_VIEW}/mask"):
+            if len(frames) != FRAME_COUNT:
+                log.warning("%s: episode %s has %d of %d frames; skipped", bag, msg.episode_id, len(frames), FRAME_COUNT)
+                continue
+            sampled = {n: float(v) for n, v in zip(msg.parameter_names, msg.parameters)
+                       if n in SAMPLED_PARAMETERS[msg.material]}
+            instances.append(Instance(msg.episode_id, msg.split, msg.shape, msg.material,
+                                      full_parameters(msg.material, sampled), int(msg.seed)))
+            videos.append(np.stack([image_to_mask(image, MAX_IMAGE_PIXELS) for _, image in sorted(frames, key=lambda f: f[0])]))
+    if not instances:
+        raise ValueError(f"no complete episode with /ad_sim/view_{FIT_VIEW}/mask frames in the bags under {bags}")
     return instances, np.stack(videos)
 
 
@@ -216,7 +223,6 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--size", default="small", choices=("tiny", "small", "paper"), help="benchmark size (no --bags)")
     p.add_argument("--split", default="unseen", choices=("train", "seen", "unseen"), help="benchmark split (no --bags)")
     p.add_argument("--bags", help="read instances and observed videos from these bags instead of simulating them")
-    p.add_argument("--cache", default=".cache/training", help="array cache folder for --bags")
     p.add_argument("--instances", type=int, default=16,
                    help="fit a seeded random subset of this many instances (0: all of them)")
     p.add_argument("--generations", type=int, default=10, help="CMA-ES generations per instance")
@@ -234,7 +240,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 def run(args) -> dict:
     progress = not args.no_progress
     if args.bags:
-        instances, observed = observed_from_bags(args.bags, args.cache)
+        instances, observed = observed_from_bags(args.bags)
         pick = select(args.instances, len(instances), args.seed)
         instances, observed = [instances[i] for i in pick], observed[pick]
         name = Path(args.bags).name

@@ -1,0 +1,78 @@
+"""Per-scene CMA-ES baseline (training/baseline.py) on real Warp CPU simulations, tiny budgets."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+from ad_estimator.metrics import compute_metrics
+from ad_sim.instances import benchmark
+from ad_sim.materials import FAMILIES, FAMILY_RANGES, SAMPLED_PARAMETERS
+from ad_sim.resimulate import PSNR_CAP, resimulate, resimulation_psnr
+from training import baseline
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_unit_coordinates_span_the_family_ranges_in_log_space_for_e_and_yield(family):
+    low = {n: FAMILY_RANGES[family][n][0] for n in SAMPLED_PARAMETERS[family]}
+    high = {n: FAMILY_RANGES[family][n][1] for n in SAMPLED_PARAMETERS[family]}
+    assert baseline.from_unit(family, np.zeros(len(low))) == pytest.approx(low)
+    assert baseline.from_unit(family, np.ones(len(low))) == pytest.approx(high)
+    middle = baseline.from_unit(family, np.full(len(low), 0.5))
+    for name in low:
+        mean = math.sqrt(low[name] * high[name]) if FAMILY_RANGES[family][name][2] == "log" else (low[name] + high[name]) / 2
+        assert middle[name] == pytest.approx(mean)
+    point = np.random.default_rng(1).random(len(low))
+    np.testing.assert_allclose(baseline.to_unit(family, baseline.from_unit(family, point)), point)
+
+
+def test_subset_is_seeded_sorted_and_distinct():
+    a = baseline.select(5, 20, seed=3)
+    np.testing.assert_array_equal(a, baseline.select(5, 20, seed=3))
+    assert len(set(a)) == 5 and list(a) == sorted(a) and a.max() < 20
+    assert not np.array_equal(a, baseline.select(5, 20, seed=4))
+    np.testing.assert_array_equal(baseline.select(0, 4, seed=0), np.arange(4))
+
+
+def test_cma_es_lowers_the_mask_loss_and_its_psnr_is_the_resimulation_psnr():
+    instance = next(i for i in benchmark("tiny", "unseen") if i.episode_id == "unseen-bull-sand-0000")
+    observed = resimulate([instance], [(instance.material, instance.parameters)])
+    # 2 generations x 4 candidates (+ the start point): 9 simulations, batched per generation.
+    fit, = baseline.fit_instances([instance], observed, generations=2, popsize=4, seed=0, progress=False)
+    assert fit.family == "sand" and fit.evaluations == 9 and len(fit.history) == 2
+    assert fit.loss < fit.initial_loss  # a candidate beat the middle of the range
+    assert fit.history[1] <= fit.history[0]
+    true_phi = instance.parameters["friction_angle"]
+    start_phi = baseline.from_unit("sand", [0.5])["friction_angle"]
+    assert abs(fit.parameters["friction_angle"] - true_phi) < abs(start_phi - true_phi)
+    # The fit's PSNR is the re-simulation PSNR of its parameters (deterministic on CPU).
+    psnr = resimulation_psnr([instance], [(fit.family, fit.parameters)], observed=observed)
+    assert psnr[0] == pytest.approx(fit.psnr) and fit.psnr < PSNR_CAP
+    # Same seed, same fit.
+    again, = baseline.fit_instances([instance], observed, generations=2, popsize=4, seed=0, progress=False)
+    assert dataclasses.replace(again, seconds=0.0) == dataclasses.replace(fit, seconds=0.0)
+    metrics = compute_metrics(baseline.predictions_of([instance], [fit]))
+    assert metrics["families"]["sand"]["acc"] == 1.0
+    assert metrics["families"]["sand"]["correct"]["friction_angle"] == pytest.approx(
+        math.degrees(abs(fit.parameters["friction_angle"] - true_phi)))
+
+
+def test_cli_fits_episodes_read_from_a_bag_and_writes_the_report(tmp_path, capsys):
+    out = tmp_path / "baseline.json"
+    args = baseline.build_parser().parse_args(
+        ["--bags", "bags/samples/unseen-masks-0of1", "--instances", "1", "--generations", "1", "--popsize", "2",
+         "--out", str(out), "--no-progress"])
+    baseline.run(args)
+    result = json.loads(out.read_text())
+    fit, = result["fits"]
+    assert fit["episode_id"] == "unseen-bull-sand-0000"  # the seeded subset of the bag's 6 episodes
+    assert fit["evaluations"] == 3 and fit["loss"] <= fit["initial_loss"]
+    assert set(fit["parameters"]) == {"friction_angle"} and fit["psnr"] == pytest.approx(10 * math.log10(1 / fit["loss"]))
+    assert result["metrics"]["families"]["sand"]["acc"] == 1.0 and result["seconds_per_instance"] > 0
+    assert result["psnr"]["families"]["sand"] == pytest.approx(fit["psnr"])
+    printed = capsys.readouterr().out
+    assert "| sand Acc |" in printed and "re-simulation PSNR" in printed
