@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,8 @@ from ad_sim.instances import benchmark
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, SAMPLED_PARAMETERS
 from ad_sim.resimulate import PSNR_CAP, resimulate, resimulation_psnr
 from training import baseline
+
+SAMPLE_BAG = Path(__file__).resolve().parents[1] / "bags" / "samples" / "unseen-masks-0of1"  # tiny unseen split
 
 
 @pytest.mark.parametrize("family", FAMILIES)
@@ -64,7 +67,7 @@ def test_cma_es_lowers_the_mask_loss_and_its_psnr_is_the_resimulation_psnr():
 def test_cli_fits_episodes_read_from_a_bag_and_writes_the_report(tmp_path, capsys):
     out = tmp_path / "baseline.json"
     args = baseline.build_parser().parse_args(
-        ["--bags", "bags/samples/unseen-masks-0of1", "--instances", "1", "--generations", "1", "--popsize", "2",
+        ["--bags", str(SAMPLE_BAG), "--instances", "1", "--generations", "1", "--popsize", "2",
          "--out", str(out), "--no-progress"])
     baseline.run(args)
     result = json.loads(out.read_text())
