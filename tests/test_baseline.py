@@ -33,14 +33,6 @@ def test_unit_coordinates_span_the_family_ranges_in_log_space_for_e_and_yield(fa
     np.testing.assert_allclose(baseline.to_unit(family, baseline.from_unit(family, point)), point)
 
 
-def test_subset_is_seeded_sorted_and_distinct():
-    a = baseline.select(5, 20, seed=3)
-    np.testing.assert_array_equal(a, baseline.select(5, 20, seed=3))
-    assert len(set(a)) == 5 and list(a) == sorted(a) and a.max() < 20
-    assert not np.array_equal(a, baseline.select(5, 20, seed=4))
-    np.testing.assert_array_equal(baseline.select(0, 4, seed=0), np.arange(4))
-
-
 def test_cma_es_lowers_the_mask_loss_and_its_psnr_is_the_resimulation_psnr():
     instance = next(i for i in benchmark("tiny", "unseen") if i.episode_id == "unseen-bull-sand-0000")
     observed = resimulate([instance], [(instance.material, instance.parameters)])

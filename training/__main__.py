@@ -1,4 +1,4 @@
-"""python -m training {cache,teacher,student,export,evaluate,pipeline}"""
+"""python -m training {cache,teacher,student,export,evaluate,pipeline,baseline,resim-psnr}"""
 from __future__ import annotations
 
 import argparse
@@ -25,7 +25,7 @@ def _cache_run(args) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from training import baseline, evaluate, export, pipeline, train_student, train_teacher
+    from training import baseline, evaluate, export, pipeline, resim_psnr, train_student, train_teacher
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     parser = argparse.ArgumentParser(prog="python -m training", description=__doc__)
@@ -38,6 +38,7 @@ def main(argv: list[str] | None = None) -> int:
         "evaluate": (evaluate.build_parser, evaluate.run, "evaluate an ONNX student on bags"),
         "pipeline": (pipeline.build_parser, pipeline.run, "bags (generated if missing) -> exported, evaluated model"),
         "baseline": (baseline.build_parser, baseline.run, "per-scene CMA-ES baseline over re-simulated masks"),
+        "resim-psnr": (resim_psnr.build_parser, resim_psnr.run, "re-simulation PSNR of a student's estimates on bags"),
     }
     for name, (build, _, help_text) in commands.items():
         build(sub.add_parser(name, help=help_text, formatter_class=argparse.ArgumentDefaultsHelpFormatter))

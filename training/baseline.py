@@ -29,13 +29,11 @@ from tqdm import tqdm
 
 from ad_estimator.metrics import Predictions, compute_metrics, format_table
 from ad_sim.instances import Instance, benchmark
-from ad_sim.materials import FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS, full_parameters
-from ad_sim.resimulate import PSNR_CAP, mask_mse, psnr_from_mse, resimulate
+from ad_sim.materials import FAMILIES, FAMILY_RANGES, PARAMETER_NAMES, SAMPLED_PARAMETERS
+from ad_sim.resimulate import mask_mse, psnr_from_mse, resimulate
+from training.resim_psnr import FIT_VIEW, format_psnr, observed_from_bags, psnr_summary, select
 
 log = logging.getLogger(__name__)
-
-FIT_VIEW = 0  # evaluation convention: one camera per instance, the first
-
 
 def to_unit(family: str, parameters: dict[str, float]) -> np.ndarray:
     """The family's sampled parameters (SI) -> [0, 1]^d over its own sampling ranges (log for E, yield)."""
@@ -168,47 +166,11 @@ def predictions_of(instances: list[Instance], fits: list[Fit]) -> Predictions:
     )
 
 
-def select(count: int, total: int, seed: int) -> np.ndarray:
-    """Indices of a seeded random subset of `count` of `total` items, in order (all if count <= 0)."""
-    if count <= 0 or count >= total:
-        return np.arange(total)
-    return np.sort(np.random.default_rng(seed).choice(total, size=count, replace=False))
-
-
-def observed_from_bags(bags: str) -> tuple[list[Instance], np.ndarray]:
-    """Instances (from each episode's /ad_sim/instance ground truth) and their recorded camera-0
-    mask videos, from every bag under `bags`; episodes without all FRAME_COUNT frames are skipped."""
-    from ad_estimator.evaluate import MAX_IMAGE_PIXELS, episode_frames, find_bags
-    from ad_estimator.images import image_to_mask
-
-    instances, videos = [], []
-    for bag in find_bags([Path(bags)]):
-        for msg, frames in episode_frames(bag, f"/ad_sim/view_{FIT_VIEW}/mask"):
-            if len(frames) != FRAME_COUNT:
-                log.warning("%s: episode %s has %d of %d frames; skipped", bag, msg.episode_id, len(frames), FRAME_COUNT)
-                continue
-            sampled = {n: float(v) for n, v in zip(msg.parameter_names, msg.parameters)
-                       if n in SAMPLED_PARAMETERS[msg.material]}
-            instances.append(Instance(msg.episode_id, msg.split, msg.shape, msg.material,
-                                      full_parameters(msg.material, sampled), int(msg.seed)))
-            videos.append(np.stack([image_to_mask(image, MAX_IMAGE_PIXELS) for _, image in sorted(frames, key=lambda f: f[0])]))
-    if not instances:
-        raise ValueError(f"no complete episode with /ad_sim/view_{FIT_VIEW}/mask frames in the bags under {bags}")
-    return instances, np.stack(videos)
-
-
 def summarise(instances: list[Instance], fits: list[Fit], wall: float) -> dict:
     """Metrics table (metrics.compute_metrics), re-simulation PSNR and time per instance."""
-    metrics = compute_metrics(predictions_of(instances, fits))
-    psnr = np.array([fit.psnr for fit in fits])
-    per_family = {}
-    for family in FAMILIES:
-        rows = [k for k, inst in enumerate(instances) if inst.material == family]
-        per_family[family] = float(psnr[rows].mean()) if rows else math.nan
     return {
-        "metrics": metrics,
-        "psnr": {"mean": float(psnr.mean()), "median": float(np.median(psnr)), "families": per_family,
-                 "exact": int((psnr == PSNR_CAP).sum())},  # masks reproduced to the pixel (PSNR_CAP)
+        "metrics": compute_metrics(predictions_of(instances, fits)),
+        "psnr": psnr_summary([inst.material for inst in instances], np.array([fit.psnr for fit in fits])),
         "seconds_per_instance": float(np.mean([fit.seconds for fit in fits])),
         "wall_seconds": wall,
     }
@@ -264,10 +226,7 @@ def run(args) -> dict:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2))
     print(format_table({str(observed.shape[1]): result["metrics"]}, f"per-scene CMA-ES baseline on {name}"))
-    psnr = result["psnr"]
-    print(f"re-simulation PSNR: mean {psnr['mean']:.2f} dB, median {psnr['median']:.2f} dB, "
-          f"{psnr['exact']} of {len(fits)} reproduced to the pixel; per family mean "
-          + ", ".join(f"{f} {'n/a' if math.isnan(v) else f'{v:.2f}'}" for f, v in psnr["families"].items()))
+    print(format_psnr(result["psnr"], len(fits)))
     print(f"{result['seconds_per_instance']:.2f} s per instance ({len(fits)} instances, {args.generations} x "
           f"{args.popsize} simulations each, {args.parallel} optimised together on {args.device}); wrote {out}")
     return result

@@ -1,0 +1,53 @@
+"""Re-simulation PSNR of a student on bags (training/resim_psnr.py): real onnxruntime, real Warp CPU."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ad_sim.instances import benchmark
+from ad_sim.materials import FAMILIES
+from ad_sim.resimulate import PSNR_CAP, resimulation_psnr
+from estimator_models import build_clip_model
+from training import resim_psnr
+
+SAMPLE_BAG = Path(__file__).resolve().parents[1] / "bags" / "samples" / "unseen-masks-0of1"  # tiny unseen split
+
+
+def test_subset_is_seeded_sorted_and_distinct():
+    a = resim_psnr.select(5, 20, seed=3)
+    np.testing.assert_array_equal(a, resim_psnr.select(5, 20, seed=3))
+    assert len(set(a)) == 5 and list(a) == sorted(a) and a.max() < 20
+    assert not np.array_equal(a, resim_psnr.select(5, 20, seed=4))
+    np.testing.assert_array_equal(resim_psnr.select(0, 4, seed=0), np.arange(4))
+
+
+def test_bag_episodes_carry_the_benchmark_instances_and_their_videos():
+    instances, videos = resim_psnr.observed_from_bags(SAMPLE_BAG)
+    expected = benchmark("tiny", "unseen")
+    assert [i.episode_id for i in instances] == [i.episode_id for i in expected]
+    for got, want in zip(instances, expected):
+        assert (got.shape, got.material, got.seed, got.pose().tolist()) == (want.shape, want.material, want.seed, want.pose().tolist())
+        assert got.parameters == pytest.approx(want.parameters, rel=1e-12)
+    assert videos.shape == (6, 25, 128, 128) and videos.dtype == np.uint8 and set(np.unique(videos)) == {0, 255}
+
+
+def test_cli_scores_a_students_estimates_by_resimulation(tmp_path, capsys):
+    model = build_clip_model(tmp_path / "student.onnx", seed=3)
+    out = tmp_path / "psnr.json"
+    args = resim_psnr.build_parser().parse_args(
+        ["--model", str(model), "--bags", str(SAMPLE_BAG), "--instances", "1", "--out", str(out), "--no-progress"])
+    resim_psnr.run(args)
+    result = json.loads(out.read_text())
+    episode, = result["episodes"]
+    assert episode["episode_id"] == "unseen-bull-sand-0000" and episode["true_material"] == "sand"
+    assert episode["material"] in FAMILIES and 0.0 < episode["psnr"] < PSNR_CAP  # random weights: not the truth
+    assert result["metrics"]["n"] == 1 and result["psnr"]["mean"] == pytest.approx(episode["psnr"])
+    # The same candidate scored against the ground truth simulated here (not read from the bag).
+    instance = next(i for i in benchmark("tiny", "unseen") if i.episode_id == episode["episode_id"])
+    again = resimulation_psnr([instance], [(episode["material"], episode["parameters"])])
+    assert again[0] == pytest.approx(episode["psnr"])
+    assert "re-simulation PSNR" in capsys.readouterr().out
