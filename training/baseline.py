@@ -228,5 +228,6 @@ def run(args) -> dict:
     print(format_table({str(observed.shape[1]): result["metrics"]}, f"per-scene CMA-ES baseline on {name}"))
     print(format_psnr(result["psnr"], len(fits)))
     print(f"{result['seconds_per_instance']:.2f} s per instance ({len(fits)} instances, {args.generations} x "
-          f"{args.popsize} simulations each, {args.parallel} optimised together on {args.device}); wrote {out}")
+          f"{args.popsize} simulations each, {min(args.parallel, len(fits))} optimised together on {args.device}); "
+          f"wrote {out}")
     return result
