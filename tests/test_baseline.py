@@ -47,9 +47,11 @@ def test_cma_es_lowers_the_mask_loss_and_its_psnr_is_the_resimulation_psnr():
     # The fit's PSNR is the re-simulation PSNR of its parameters (deterministic on CPU).
     psnr = resimulation_psnr([instance], [(fit.family, fit.parameters)], observed=observed)
     assert psnr[0] == pytest.approx(fit.psnr) and fit.psnr < PSNR_CAP
-    # Same seed, same fit.
-    again, = baseline.fit_instances([instance], observed, generations=2, popsize=4, seed=0, progress=False)
-    assert dataclasses.replace(again, seconds=0.0) == dataclasses.replace(fit, seconds=0.0)
+    # Same seed, same fit, also when batched with another instance's search (one launch of 18 scenes).
+    batched = baseline.fit_instances([instance, instance], np.concatenate([observed, observed]), generations=2,
+                                     popsize=4, seed=0, parallel=2, progress=False)
+    for again in batched:
+        assert dataclasses.replace(again, seconds=0.0) == dataclasses.replace(fit, seconds=0.0)
     metrics = compute_metrics(baseline.predictions_of([instance], [fit]))
     assert metrics["families"]["sand"]["acc"] == 1.0
     assert metrics["families"]["sand"]["correct"]["friction_angle"] == pytest.approx(

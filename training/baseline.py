@@ -10,8 +10,8 @@ the re-simulation PSNR, so the fit's PSNR is psnr_from_mse(loss) of its best can
 
 Cost: each CMA-ES generation of `parallel` instances is ONE ad_sim.resimulate call of
 parallel x popsize scenes (e.g. 16 x 16 = 256, the CUDA solver's sweet spot). Every instance has
-its own CMA-ES seed (from --seed and its episode id), and a scene's simulation on CPU does not
-depend on its batch, so on CPU a fit does not depend on which instances it was batched with.
+its own CMA-ES random stream (from --seed and its episode id), and a scene's simulation on CPU
+does not depend on its batch, so on CPU a fit does not depend on which instances it was batched with.
 """
 from __future__ import annotations
 
@@ -73,10 +73,14 @@ class Fit:
         return psnr_from_mse(self.loss)
 
 
-def cma_seed(seed: int, episode_id: str) -> int:
-    """Per-instance CMA-ES seed in [1, 2^31) (cma reads 0 as 'seed from the clock')."""
-    state = np.random.SeedSequence([seed, zlib.crc32(episode_id.encode())]).generate_state(1)[0]
-    return int(state) % (2**31 - 1) + 1
+def search_rng(seed: int, episode_id: str) -> np.random.Generator:
+    """The random stream of one instance's CMA-ES. cma samples from numpy's global generator unless
+    given its own `randn`, and that would couple the searches of instances optimised together."""
+    return np.random.default_rng([seed, zlib.crc32(episode_id.encode())])
+
+
+def _own_randn(rng: np.random.Generator):
+    return lambda rows, columns: rng.standard_normal((rows, columns))
 
 
 def fit_instances(
@@ -113,7 +117,7 @@ def fit_instances(
         starts = [np.full(max(2, len(SAMPLED_PARAMETERS[family])), 0.5) for family in families]
         strategies = [
             cma.CMAEvolutionStrategy(x0, sigma0, {"bounds": [0.0, 1.0], "popsize": popsize, "verbose": -9,
-                                                  "seed": cma_seed(seed, instances[i].episode_id)})
+                                                  "randn": _own_randn(search_rng(seed, instances[i].episode_id))})
             for i, x0 in zip(chunk, starts)
         ]
         best = [(math.inf, None)] * len(chunk)  # (loss, unit point) per instance
