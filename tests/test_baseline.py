@@ -73,3 +73,12 @@ def test_cli_fits_episodes_read_from_a_bag_and_writes_the_report(tmp_path, capsy
     assert result["psnr"]["families"]["sand"] == pytest.approx(fit["psnr"])
     printed = capsys.readouterr().out
     assert "| sand Acc |" in printed and "re-simulation PSNR" in printed
+
+
+def test_registered_as_a_training_subcommand_with_help(capsys):
+    from training.__main__ import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["baseline", "--help"])
+    assert exit_info.value.code == 0
+    assert "--generations" in capsys.readouterr().out

@@ -51,3 +51,12 @@ def test_cli_scores_a_students_estimates_by_resimulation(tmp_path, capsys):
     again = resimulation_psnr([instance], [(episode["material"], episode["parameters"])])
     assert again[0] == pytest.approx(episode["psnr"])
     assert "re-simulation PSNR" in capsys.readouterr().out
+
+
+def test_registered_as_a_training_subcommand_with_help(capsys):
+    from training.__main__ import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["resim-psnr", "--help"])
+    assert exit_info.value.code == 0
+    assert "--model" in capsys.readouterr().out
