@@ -27,7 +27,8 @@ def test_unit_coordinates_span_the_family_ranges_in_log_space_for_e_and_yield(fa
     assert baseline.from_unit(family, np.ones(len(low))) == pytest.approx(high)
     middle = baseline.from_unit(family, np.full(len(low), 0.5))
     for name in low:
-        mean = math.sqrt(low[name] * high[name]) if FAMILY_RANGES[family][name][2] == "log" else (low[name] + high[name]) / 2
+        log_scale = FAMILY_RANGES[family][name][2] == "log"
+        mean = math.sqrt(low[name] * high[name]) if log_scale else (low[name] + high[name]) / 2
         assert middle[name] == pytest.approx(mean)
     point = np.random.default_rng(1).random(len(low))
     np.testing.assert_allclose(baseline.to_unit(family, baseline.from_unit(family, point)), point)
@@ -68,7 +69,8 @@ def test_cli_fits_episodes_read_from_a_bag_and_writes_the_report(tmp_path, capsy
     fit, = result["fits"]
     assert fit["episode_id"] == "unseen-bull-sand-0000"  # the seeded subset of the bag's 6 episodes
     assert fit["evaluations"] == 3 and fit["loss"] <= fit["initial_loss"]
-    assert set(fit["parameters"]) == {"friction_angle"} and fit["psnr"] == pytest.approx(10 * math.log10(1 / fit["loss"]))
+    assert set(fit["parameters"]) == {"friction_angle"}
+    assert fit["psnr"] == pytest.approx(10 * math.log10(1 / fit["loss"]))
     assert result["metrics"]["families"]["sand"]["acc"] == 1.0 and result["seconds_per_instance"] > 0
     assert result["psnr"]["families"]["sand"] == pytest.approx(fit["psnr"])
     printed = capsys.readouterr().out

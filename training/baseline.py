@@ -46,7 +46,9 @@ def to_unit(family: str, parameters: dict[str, float]) -> np.ndarray:
 
 
 def from_unit(family: str, unit) -> dict[str, float]:
-    """Inverse of to_unit: a point of [0, 1]^d -> the family's sampled parameters (SI); extra coordinates are ignored."""
+    """Inverse of to_unit: a point of [0, 1]^d -> the family's sampled parameters (SI).
+
+    Coordinates beyond the family's parameters are ignored."""
     out = {}
     for name, u in zip(SAMPLED_PARAMETERS[family], np.asarray(unit, dtype=np.float64)):
         low, high, scale = FAMILY_RANGES[family][name]

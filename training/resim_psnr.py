@@ -35,15 +35,17 @@ def bag_episodes(bags: str | Path):
     for bag in find_bags([Path(bags)]):
         for msg, frames in episode_frames(bag, MASK_TOPIC):
             if len(frames) != FRAME_COUNT:
-                log.warning("%s: episode %s has %d of %d frames; skipped", bag, msg.episode_id, len(frames), FRAME_COUNT)
+                log.warning("%s: episode %s has %d of %d frames; skipped", bag, msg.episode_id, len(frames),
+                            FRAME_COUNT)
                 continue
             yield bag, msg, sorted(frames, key=lambda f: f[0])
 
 
 def instance_of(msg) -> Instance:
     """The Instance of a SimInstance message (its ground truth, one view)."""
-    sampled = {n: float(v) for n, v in zip(msg.parameter_names, msg.parameters) if n in SAMPLED_PARAMETERS[msg.material]}
-    return Instance(msg.episode_id, msg.split, msg.shape, msg.material, full_parameters(msg.material, sampled), int(msg.seed))
+    family = msg.material
+    sampled = {n: float(v) for n, v in zip(msg.parameter_names, msg.parameters) if n in SAMPLED_PARAMETERS[family]}
+    return Instance(msg.episode_id, msg.split, msg.shape, family, full_parameters(family, sampled), int(msg.seed))
 
 
 def video_of(frames) -> np.ndarray:
@@ -103,7 +105,8 @@ def model_psnr(model_path: str | Path, bags: str | Path, device: str = "cpu", co
     estimates = [predict_episode(model, bag, msg, frames, model.info.frame_count) for bag, msg, frames in episodes]
     predictions = to_metrics(estimates, model.info.parameter_names)
     instances = [instance_of(msg) for _, msg, _ in episodes]
-    candidates = [candidate_from_row(FAMILIES[c], row) for c, row in zip(predictions.pred_class, predictions.pred_params)]
+    candidates = [candidate_from_row(FAMILIES[c], row)
+                  for c, row in zip(predictions.pred_class, predictions.pred_params)]
     start = time.perf_counter()
     psnr = resimulation_psnr(instances, candidates, device, FIT_VIEW,
                              observed=np.stack([video_of(frames) for _, _, frames in episodes]), progress=progress)

@@ -140,6 +140,7 @@ def resimulation_psnr(
     else:
         if len(observed) != len(instances):
             raise ValueError(f"need one observed video per instance, got {len(observed)} for {len(instances)}")
-        predicted = resimulate(instances, predictions, device, view, frame_count=np.shape(observed)[1], progress=progress)
+        frame_count = np.shape(observed)[1]
+        predicted = resimulate(instances, predictions, device, view, frame_count=frame_count, progress=progress)
     return np.atleast_1d(mask_psnr(predicted, observed))
 
