@@ -13,7 +13,10 @@ import time
 from argparse import Namespace
 from pathlib import Path
 
-from training import evaluate, export, train_student, train_teacher
+from ad_estimator.metrics import compute_metrics, format_table
+from ad_sim.materials import FRAME_COUNT
+from training import data, evaluate, export, train_student, train_teacher
+from training.engine import init_runtime
 from training.train_student import ABLATIONS
 
 # Epochs per size: paper values (SPEC 9) for `paper`; `small` fits 2 CPU cores in under an hour.
@@ -86,7 +89,16 @@ def run(args) -> dict:
                                             batch_size=teacher_batch))
     timings["teacher_s"] = time.time() - t
 
-    summary = {"size": args.size, "seed": args.seed, "teacher": str(teacher), "students": {}}
+    summary = {"size": args.size, "seed": args.seed, "teacher": str(teacher), "teacher_metrics": {}, "students": {}}
+    device = init_runtime(args.device).device
+    model = train_teacher.load_teacher(teacher, device)
+    for split in ("seen", "unseen"):
+        ds = data.load_dataset(bags[split], args.cache, progress=False)
+        res = compute_metrics(train_teacher.teacher_predictions(model, ds, device))
+        summary["teacher_metrics"][split] = {"accuracy": res["accuracy"], "regl1": res["regl1"],
+                                             "families": res["families"]}
+        print(format_table({str(FRAME_COUNT): res}, f"teacher on {args.size}/{split}"))
+    del model
     installed = None
     for ablation in ablations:
         name = f"{args.kind}_{ablation}"

@@ -8,6 +8,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset as TorchDataset
 
+from ad_estimator.metrics import Predictions
+from ad_sim.materials import PARAMETER_NAMES, denormalise
 from training import data
 from training.engine import BEST, FitConfig, fit, init_runtime, load_checkpoint, main_first, seed_everything
 from training.models.common import task_loss
@@ -92,6 +94,20 @@ def teacher_targets(teacher: Teacher, ds: data.Dataset, device, batch_size: int 
         x = torch.from_numpy(np.stack([ds.trajectory(i) for i in idx])).to(device)
         out.append(teacher(x)["z"].float().cpu().numpy())
     return np.concatenate(out) if out else np.zeros((0, teacher.config.z_dim), np.float32)
+
+
+@torch.no_grad()
+def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: int = 16) -> Predictions:
+    """The teacher's estimates for every instance of ds, as metrics.Predictions (SI parameters)."""
+    probs, params = [], []
+    for start in range(0, len(ds), batch_size):
+        idx = range(start, min(len(ds), start + batch_size))
+        out = teacher(torch.from_numpy(np.stack([ds.trajectory(i) for i in idx])).to(device))
+        probs.append(torch.softmax(out["logits"].float(), -1).cpu().numpy())
+        params.append(out["params"].float().clamp(0, 1).cpu().numpy())
+    normalised = np.concatenate(params)
+    si = np.stack([denormalise(n, normalised[:, j]) for j, n in enumerate(PARAMETER_NAMES)], axis=1)
+    return Predictions(ds.labels, ds.params_si, np.concatenate(probs), si, list(ds.episode_ids))
 
 
 def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr: float = 1e-4) -> None:
