@@ -127,6 +127,19 @@ def test_thirty_fps_camera_gets_the_models_spacing(ros, model_paths):
     np.testing.assert_allclose(t.estimates[0].class_probabilities, expected.probabilities, rtol=1e-6)
 
 
+def test_idle_input_settles_the_last_slot(ros, model_paths):
+    """A stream that ends with its last frame just before the last slot time still gets its estimate."""
+    t = start(ros, model_paths["streaming"], idle_flush=0.2)
+    masks = falling_masks(seed=10)
+    for k, mask in enumerate(masks):
+        t.publisher.publish(image_msg(mask, k * DT - (2_000_000 if k == 24 else 0)))
+    assert wait_for(lambda: t.node.statistics()["processed"] == 25)
+    arrived = time.monotonic()
+    assert wait_for(lambda: len(t.estimates) == 1, timeout=5)
+    assert time.monotonic() - arrived > 0.1  # only once the input went idle
+    assert t.estimates[0].complete and t.estimates[0].frames_used == 25
+
+
 def test_reset_service_restarts_the_window(ros, model_paths):
     t = start(ros, model_paths["streaming"])
     masks = falling_masks(seed=5)
