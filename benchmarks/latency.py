@@ -85,14 +85,23 @@ def run_no_ros(args) -> dict:
                              every_n=args.every_n, min_frames=args.min_frames)
         for k, mask in enumerate(clip):
             image = FakeImage(mask)
+            encode_time = [0.0]
+
+            def encode(binary):
+                encode_start = time.perf_counter()
+                feature = model.encode(binary)
+                encode_time[0] = time.perf_counter() - encode_start
+                return feature
+
             start = time.perf_counter()
             binary = image_to_mask(image, 4096 * 4096)
-            for out in window.add(k * FRAME_NS, binary.shape, lambda: model.encode(binary)):
+            for out in window.add(k * FRAME_NS, binary.shape, lambda: encode(binary)):
                 model_start = time.perf_counter()
                 model.predict(out.features, out.valid)
-                model_times.append(time.perf_counter() - model_start)
+                # as the node reports it: this frame's encoding + the temporal head (or the clip)
+                model_times.append(time.perf_counter() - model_start + encode_time[0])
                 latencies.append(time.perf_counter() - start)
-    return {"latency": percentiles(latencies), "temporal_head_or_clip": percentiles(model_times)}
+    return {"latency": percentiles(latencies), "model_time": percentiles(model_times)}
 
 
 def publish_frames(args) -> None:
