@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from training import engine
-from training.models.teacher import TEACHER_PRESETS, Teacher, farthest_point_sampling
+from training.models.teacher import TEACHER_PRESETS, Teacher, farthest_point_sampling, strain_features
 from training.synthetic import write_synthetic_bag
 from training.train_student import ABLATIONS, student_loss
 from training.train_student import run as run_student
@@ -41,6 +41,19 @@ def test_farthest_point_sampling_spreads_anchors():
     pts = torch.tensor([[[0.0, 0, 0], [0.1, 0, 0], [1.0, 0, 0], [0.5, 0, 0], [0.9, 0, 0]]])
     idx = farthest_point_sampling(pts, 3)[0].tolist()
     assert idx == [0, 2, 3]
+
+
+def test_strain_features_ignore_rotation():
+    """A tumbling object's F = R S: the C and det F features see only the stretch S."""
+    torch.manual_seed(0)
+    q, _ = torch.linalg.qr(torch.randn(3, 3))
+    rotation = q * torch.sign(torch.linalg.det(q))
+    stretch = torch.diag(torch.tensor([1.2, 0.9, 1.05]))
+    rotated = strain_features((rotation @ stretch).reshape(1, 9))[0]
+    plain = strain_features(stretch.reshape(1, 9))[0]
+    torch.testing.assert_close(rotated[9:], plain[9:], atol=1e-5, rtol=0)
+    assert plain[9:15].tolist() == pytest.approx([0.44, 0, 0, -0.19, 0, 0.1025], abs=1e-5)
+    assert plain[15].item() == pytest.approx(1.2 * 0.9 * 1.05 - 1, abs=1e-5)
 
 
 def test_square_symmetries_are_exact_augmentations():

@@ -56,6 +56,21 @@ def farthest_point_sampling(points: torch.Tensor, k: int) -> torch.Tensor:
     return idx
 
 
+STRAIN_FEATURES = 9 + 6 + 1
+_UPPER = (0, 1, 2, 4, 5, 8)  # upper triangle of a row-major 3x3
+
+
+def strain_features(f: torch.Tensor) -> torch.Tensor:
+    """(..., 9) row-major F -> (..., 16): F - I, the rotation-free C - I (C = F^T F, upper
+    triangle) and det F - 1. Objects tumble, so F - I alone is dominated by rotation; C and
+    det F carry the strain that the material parameters govern."""
+    m = f.reshape(*f.shape[:-1], 3, 3)
+    eye = torch.eye(3, device=f.device, dtype=f.dtype)
+    c = (m.transpose(-1, -2) @ m - eye).flatten(-2)[..., _UPPER]
+    return torch.cat([(f - eye.flatten()).clamp(-10.0, 10.0), c.clamp(-10.0, 10.0),
+                      (torch.linalg.det(m) - 1.0).clamp(-10.0, 10.0).unsqueeze(-1)], dim=-1)
+
+
 def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """x (B, T, N, C), idx (B, ...) -> (B, T, ..., C)."""
     b, t, n, c = x.shape
@@ -70,7 +85,7 @@ class Teacher(nn.Module):
     def __init__(self, config: TeacherConfig):
         super().__init__()
         self.config = c = config
-        self.point_mlp = nn.Sequential(nn.Linear(3 + 3 + 9, c.point_width // 2), nn.GELU(),
+        self.point_mlp = nn.Sequential(nn.Linear(3 + 3 + STRAIN_FEATURES, c.point_width // 2), nn.GELU(),
                                        nn.Linear(c.point_width // 2, c.point_width), nn.GELU(),
                                        nn.Linear(c.point_width, c.point_width))
         self.temporal = nn.Conv1d(c.point_width, c.width, c.temporal_kernel, stride=c.temporal_stride,
@@ -96,13 +111,12 @@ class Teacher(nn.Module):
         b, t = traj.shape[:2]
         if anchors is None or neighbours is None:
             anchors, neighbours = self.tubes(traj)
-        identity = torch.eye(3, device=traj.device, dtype=traj.dtype).reshape(9)
         centre = _gather(traj[..., :3], anchors)  # (B, T, A, 3)
         nb = _gather(traj, neighbours)  # (B, T, A, k, 15)
         features = torch.cat([
             (nb[..., :3] - centre.unsqueeze(3)) * 10.0,  # tube-local geometry, ~unit scale
             nb[..., 3:6].clamp(-20.0, 20.0),
-            (nb[..., 6:] - identity).clamp(-10.0, 10.0),
+            strain_features(nb[..., 6:]),
         ], dim=-1)
         slices = self.point_mlp(features).amax(dim=3)  # (B, T, A, C)
         a = slices.shape[2]
