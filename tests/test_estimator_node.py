@@ -314,3 +314,9 @@ def test_clean_shutdown_on_signals(model_paths, sig, ros_domain_id):
     out = "".join(lines) + proc.communicate(timeout=20)[0]
     assert proc.returncode == 0, out
     assert "Traceback" not in out and "shutting down" in out
+
+
+def test_estimator_runtime_never_imports_torch():
+    code = ("import sys, ad_estimator.node, ad_estimator.replay, ad_estimator.evaluate, ad_estimator.model; "
+            "sys.exit('torch' in sys.modules)")
+    assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
