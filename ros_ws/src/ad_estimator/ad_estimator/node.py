@@ -114,7 +114,10 @@ class EstimatorNode(Node):
         p = self._declare_parameters()
         self.model = EstimatorModel.load(p["model_path"] or BUNDLED_MODEL, threads=p["threads"])
         self.info = self.model.info
-        self.window = self._new_window(p["output_policy"], p["every_n"], p["min_frames"], p["gap_threshold"])
+        self.slot_tolerance = p["slot_tolerance"]
+        self.window = FrameWindow(self.info.frame_interval, self.info.frame_count, gap_threshold=p["gap_threshold"],
+                                  slot_tolerance=self.slot_tolerance, policy=p["output_policy"],
+                                  every_n=p["every_n"], min_frames=min(p["min_frames"], self.info.frame_count))
         self.max_pixels = p["max_image_pixels"]
         self.threshold = p["mask_threshold"]
         self.idle_flush = p["idle_flush"]
@@ -158,14 +161,6 @@ class EstimatorNode(Node):
         if values["queue_size"] < 1 or values["threads"] < 1 or values["max_image_pixels"] < 1:
             raise ValueError("queue_size, threads and max_image_pixels must be positive")
         return values
-
-    def _new_window(self, policy: str, every_n: int, min_frames: int, gap_threshold: float) -> FrameWindow:
-        return FrameWindow(self.info.frame_interval, self.info.frame_count, gap_threshold=gap_threshold,
-                           slot_tolerance=self._param_value("slot_tolerance"), policy=policy, every_n=every_n,
-                           min_frames=min(min_frames, self.info.frame_count))
-
-    def _param_value(self, name):
-        return self.get_parameter(name).value
 
     def _input_topic(self) -> str:
         """`mask` remapped if the user remapped it, else the simulator's first camera."""
@@ -306,7 +301,7 @@ class EstimatorNode(Node):
                 raise ValueError(f"frame {i}: {exc}") from exc
         stamps = [stamp_to_ns(f.header.stamp.sec, f.header.stamp.nanosec) for f in frames]
         out = clip_output(stamps, masks, self.model.encode, self.info.frame_interval, self.info.frame_count,
-                          self._param_value("slot_tolerance"))
+                          self.slot_tolerance)
         estimate = self.model.predict(out.features, out.valid)
         return estimate_message(estimate, out, frames[-1].header.frame_id, self.info.model_id,
                                 time.perf_counter() - start)
