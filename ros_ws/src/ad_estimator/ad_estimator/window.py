@@ -11,8 +11,9 @@ mask), never invented. So a 40 fps camera fills every slot exactly, a 30 fps or 
 gets the nearest frames (time error at most half its frame period), a camera slower than
 1 / (2 * tolerance * dt) leaves gaps. Slot k is final ("settled") once a frame stamped at or after
 its time arrived (no later frame can be nearer); estimates only ever use settled slots, so the
-estimate at 25 frames is due the moment the frame for the last slot arrives. ``flush()`` settles
-what can be settled when no more frames are coming (end of stream, idle input).
+estimate at 25 frames is due the moment the frame for the last slot arrives. ``flush()`` (no more
+frames are coming: end of stream, idle input) settles the slots up to the one nearest to the last
+frame, so a clip of K frames on the interval gives exactly K slots.
 
 Episodes. The window restarts (its next frame becomes frame 0) on a stamp gap larger than
 ``gap_threshold`` seconds, on stamps going backwards, on a change of image size and on
@@ -170,14 +171,15 @@ class FrameWindow:
             self.stats.ignored += 1
 
     def flush(self) -> list[WindowOutput]:
-        """No more frames are coming for now: settle every slot that has a frame, emit what is then due.
+        """No more frames are coming for now: settle up to the last frame's slot, emit what is then due.
 
         Safe to call at any time (e.g. when input went idle): frames that still come later continue
         the episode, only an estimate already emitted is not repeated."""
         if not self.active:
             return []
-        filled = [k for k, slot in enumerate(self._slots) if slot is not None]
-        self._settled = max(self._settled, filled[-1] + 1)
+        # Up to the slot nearest to the last frame: later slots would only repeat that frame.
+        nearest = (self._last_ns - self._start_ns + self.interval_ns // 2) // self.interval_ns
+        self._settled = max(self._settled, min(self.frame_count, nearest + 1))
         return self._due(final=True)
 
     def _due(self, final: bool) -> list[WindowOutput]:
