@@ -1,5 +1,6 @@
 """replay (bag -> topics with recorded timing and QoS) and the live path against the offline path."""
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -85,6 +86,15 @@ def test_replay_missing_bag(tmp_path, ros_domain_id):
     proc = run("ad_estimator.replay", str(tmp_path / "nothing"))
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 1 and "does not exist" in out
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_replay_stops_cleanly_on_signals(test_bag, sig, ros_domain_id):
+    proc = run("ad_estimator.replay", str(test_bag), "--rate", "0.2", "--quiet", "--delay", "0")
+    time.sleep(2.0)
+    proc.send_signal(sig)
+    out, _ = proc.communicate(timeout=20)
+    assert proc.returncode == 0 and "Traceback" not in out, out
 
 
 def live_and_offline_inputs(tmp_path):
