@@ -4,7 +4,6 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import numpy as np
 
 from ad_sim import messages
 from ad_sim.rosbag import BagWriter, qos_profile
