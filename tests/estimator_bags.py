@@ -4,7 +4,6 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-
 from ad_sim import messages
 from ad_sim.rosbag import BagWriter, qos_profile
 from estimator_models import falling_masks
