@@ -121,7 +121,8 @@ def test_live_path_equals_offline_path(tmp_path, ros_domain_id):
         listener.create_subscription(SimInstance, INSTANCE_TOPIC,
                                      lambda m: instances.setdefault(stamp_ns(m.header.stamp), m), LATCHED)
         executor.add_node(listener)
-        estimator = run("ad_estimator.node", "--ros-args", "-p", f"model_path:={model}", "-p", "reliable:=true")
+        estimator = run("ad_estimator.node", "--ros-args", "-p", f"model_path:={model}", "-p", "reliable:=true",
+                        "-p", "input_depth:=200")  # a busy CI machine must not lose a frame
         live = {}
         try:
             assert wait_for(lambda: listener.count_publishers("/ad_estimator/estimate") > 0, timeout=30)
