@@ -97,10 +97,6 @@ class Estimate:
     frames_used: int
     inference_time: float  # seconds spent in predict()
 
-    @property
-    def class_index(self) -> int:
-        return self.class_names.index(self.material)
-
 
 def _json(meta: dict, key: str, path: Path):
     try:
