@@ -60,11 +60,13 @@ STRAIN_FEATURES = 9 + 6 + 1
 _UPPER = (0, 1, 2, 4, 5, 8)  # upper triangle of a row-major 3x3
 
 
+@torch.autocast("cuda", enabled=False)
 def strain_features(f: torch.Tensor) -> torch.Tensor:
     """(..., 9) row-major F -> (..., 16): F - I, the rotation-free C - I (C = F^T F, upper
     triangle) and det F - 1. Objects tumble, so F - I alone is dominated by rotation; C and
     det F carry the strain that the material parameters govern."""
-    m = f.reshape(*f.shape[:-1], 3, 3)
+    m = f.float().reshape(*f.shape[:-1], 3, 3)  # det and products in float32 even under autocast
+    f = f.float()
     eye = torch.eye(3, device=f.device, dtype=f.dtype)
     c = (m.transpose(-1, -2) @ m - eye).flatten(-2)[..., _UPPER]
     return torch.cat([(f - eye.flatten()).clamp(-10.0, 10.0), c.clamp(-10.0, 10.0),
