@@ -11,11 +11,12 @@
 #   SIZE [paper]                model size preset: tiny | small | paper
 #   TEACHER_EPOCHS [300] STUDENT_EPOCHS [20] BATCH [32] (per process) LR [1e-4]
 #   ABLATIONS ["none align_only full"]  KINDS ["streaming uniformer"]
+#   PARALLEL [0]                1: train the students side by side on one GPU (logs in OUT/<name>.log)
 #   STOP_AFTER [0]              >0: every training step stops after that many epochs in this run
-#   CACHE [OUT/cache]
+#   CACHE [OUT/cache]           DEVICE [cuda] (cpu: quick end-to-end checks of this script)
 set -euo pipefail
 if [ $# -ne 2 ]; then
-    sed -n '2,17p' "$0"
+    sed -n '2,18p' "$0"
     exit 2
 fi
 BAGS=$1
@@ -23,7 +24,7 @@ OUT=$2
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 export PYTHONPATH="$ROOT/ros_ws/src/ad_sim:$ROOT/ros_ws/src/ad_estimator:$ROOT${PYTHONPATH:+:$PYTHONPATH}"
-NPROC=${NPROC:-$(nvidia-smi -L 2>/dev/null | wc -l)}
+NPROC=${NPROC:-$( (nvidia-smi -L 2>/dev/null || true) | wc -l)}
 NPROC=$(( NPROC > 0 ? NPROC : 1 ))
 SIZE=${SIZE:-paper}
 TEACHER_EPOCHS=${TEACHER_EPOCHS:-300}
@@ -33,6 +34,8 @@ LR=${LR:-1e-4}
 ABLATIONS=${ABLATIONS:-none align_only full}
 KINDS=${KINDS:-streaming uniformer}
 STOP_AFTER=${STOP_AFTER:-0}
+PARALLEL=${PARALLEL:-0}
+DEVICE=${DEVICE:-cuda}
 CACHE=${CACHE:-$OUT/cache}
 for split in train seen unseen; do
     [ -d "$BAGS/$split" ] || { echo "gpu_train.sh: $BAGS/$split missing; generate it with" \
@@ -43,7 +46,8 @@ if [ "$NPROC" -gt 1 ]; then
 else
     RUN=(python -m training)
 fi
-COMMON=(--cache "$CACHE" --size "$SIZE" --batch-size "$BATCH" --lr "$LR" --device cuda --amp --stop-after "$STOP_AFTER")
+COMMON=(--cache "$CACHE" --size "$SIZE" --batch-size "$BATCH" --lr "$LR" --device "$DEVICE" --stop-after "$STOP_AFTER")
+[ "$DEVICE" = cpu ] || COMMON+=(--amp)
 mkdir -p "$OUT"
 
 echo "==> cache ($BAGS)"
@@ -52,19 +56,36 @@ for split in train seen unseen; do python -m training cache --bags "$BAGS/$split
 echo "==> teacher ($NPROC process(es), $TEACHER_EPOCHS epochs)"
 "${RUN[@]}" teacher --bags "$BAGS/train" --out "$OUT/teacher" --epochs "$TEACHER_EPOCHS" "${COMMON[@]}"
 
+# Students: each trains in its own process; with PARALLEL=1 they share the GPU at the same time
+# (one H200 has room for all of them, and the data loaders then keep more CPU cores busy).
+STUDENTS=()
 for kind in $KINDS; do
     for ablation in $ABLATIONS; do
         # The UniFormer-style reference is trained in the full setting only.
         [ "$kind" = uniformer ] && [ "$ablation" != full ] && continue
-        name="${kind}_${ablation}"
-        echo "==> student $name ($STUDENT_EPOCHS epochs)"
-        "${RUN[@]}" student --bags "$BAGS/train" --out "$OUT/$name" --epochs "$STUDENT_EPOCHS" \
-            --teacher "$OUT/teacher/best.pt" --kind "$kind" --ablation "$ablation" "${COMMON[@]}"
-        python -m training export --checkpoint "$OUT/$name/best.pt" --out "$OUT/models/$name.onnx"
-        for split in seen unseen; do
-            python -m training evaluate --model "$OUT/models/$name.onnx" --bags "$BAGS/$split" --cache "$CACHE" \
-                --out "$OUT/reports/${name}_$split" --title "$name on $split" --no-progress
-        done
+        STUDENTS+=("$kind:$ablation")
+    done
+done
+pids=()
+for student in "${STUDENTS[@]}"; do
+    kind=${student%%:*} ablation=${student##*:} name="${student/:/_}"
+    echo "==> student $name ($STUDENT_EPOCHS epochs)"
+    cmd=("${RUN[@]}" student --bags "$BAGS/train" --out "$OUT/$name" --epochs "$STUDENT_EPOCHS"
+         --teacher "$OUT/teacher/best.pt" --kind "$kind" --ablation "$ablation" "${COMMON[@]}")
+    if [ "$PARALLEL" = 1 ]; then
+        "${cmd[@]}" --no-progress >"$OUT/$name.log" 2>&1 &
+        pids+=($!)
+    else
+        "${cmd[@]}"
+    fi
+done
+for pid in "${pids[@]}"; do wait "$pid"; done
+for student in "${STUDENTS[@]}"; do
+    name="${student/:/_}"
+    python -m training export --checkpoint "$OUT/$name/best.pt" --out "$OUT/models/$name.onnx"
+    for split in seen unseen; do
+        python -m training evaluate --model "$OUT/models/$name.onnx" --bags "$BAGS/$split" --cache "$CACHE" \
+            --out "$OUT/reports/${name}_$split" --title "$name on $split" --no-progress
     done
 done
 echo "==> done: models in $OUT/models, reports in $OUT/reports"
