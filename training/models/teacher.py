@@ -58,19 +58,23 @@ def farthest_point_sampling(points: torch.Tensor, k: int) -> torch.Tensor:
 
 STRAIN_FEATURES = 9 + 6 + 1
 _UPPER = (0, 1, 2, 4, 5, 8)  # upper triangle of a row-major 3x3
+_STRAIN_SCALE = 5.0  # strains of stiff materials are a few percent: bring them to ~unit scale
 
 
 @torch.autocast("cuda", enabled=False)
 def strain_features(f: torch.Tensor) -> torch.Tensor:
-    """(..., 9) row-major F -> (..., 16): F - I, the rotation-free C - I (C = F^T F, upper
-    triangle) and det F - 1. Objects tumble, so F - I alone is dominated by rotation; C and
-    det F carry the strain that the material parameters govern."""
-    m = f.float().reshape(*f.shape[:-1], 3, 3)  # det and products in float32 even under autocast
+    """(..., 9) row-major F -> (..., 16): F - I, then the rotation-free C - I (C = F^T F, upper
+    triangle) and det F - 1, both scaled up. Objects tumble, so F - I alone is dominated by
+    rotation; C and det F carry the strain that the material parameters govern. Computed in
+    float32 even under autocast."""
     f = f.float()
+    m = f.reshape(*f.shape[:-1], 3, 3)
     eye = torch.eye(3, device=f.device, dtype=f.dtype)
-    c = (m.transpose(-1, -2) @ m - eye).flatten(-2)[..., _UPPER]
-    return torch.cat([(f - eye.flatten()).clamp(-10.0, 10.0), c.clamp(-10.0, 10.0),
-                      (torch.linalg.det(m) - 1.0).clamp(-10.0, 10.0).unsqueeze(-1)], dim=-1)
+    cauchy_green = m.transpose(-1, -2) @ m
+    c = (cauchy_green - eye).flatten(-2)[..., _UPPER]
+    det = (torch.linalg.det(m) - 1.0).unsqueeze(-1)
+    return torch.cat([(f - eye.flatten()).clamp(-10.0, 10.0),
+                      (_STRAIN_SCALE * torch.cat([c, det], dim=-1)).clamp(-20.0, 20.0)], dim=-1)
 
 
 def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
