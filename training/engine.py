@@ -143,9 +143,9 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
     A run finds LAST in out_dir and resumes from it.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
-    sampler = DistributedSampler(train_set, num_replicas=rt.world, rank=rt.rank, shuffle=True, seed=cfg.seed,
-                                 drop_last=len(train_set) >= cfg.batch_size * rt.world)
-    loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=sampler, drop_last=False,
+    # Also used with one process: the same seeded shuffle per epoch, so a resumed run sees the same order.
+    sampler = DistributedSampler(train_set, num_replicas=rt.world, rank=rt.rank, shuffle=True, seed=cfg.seed)
+    loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=sampler,
                         num_workers=0, pin_memory=rt.device.type == "cuda")
     val_sampler = DistributedSampler(val_set, num_replicas=rt.world, rank=rt.rank, shuffle=False) \
         if val_set is not None and len(val_set) else None
