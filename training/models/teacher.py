@@ -27,17 +27,20 @@ class TeacherConfig:
     heads: int = 8
     z_dim: int = 256
     dropout: float = 0.1
+    # Scale of the rotation-free strain features. Checkpoints from before it was recorded used 1.0
+    # (hence the default); the presets use 5.0 (stiff materials strain a few percent).
+    strain_scale: float = 1.0
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
 TEACHER_PRESETS = {
-    "paper": TeacherConfig(),
+    "paper": TeacherConfig(strain_scale=5.0),
     "small": TeacherConfig(anchors=32, neighbours=8, point_width=64, temporal_stride=3, width=128, depth=2,
-                           heads=4, z_dim=128),
+                           heads=4, z_dim=128, strain_scale=5.0),
     "tiny": TeacherConfig(anchors=16, neighbours=8, point_width=32, temporal_stride=4, width=32, depth=1, heads=2,
-                          z_dim=32, dropout=0.0),
+                          z_dim=32, dropout=0.0, strain_scale=5.0),
 }
 
 
@@ -58,13 +61,12 @@ def farthest_point_sampling(points: torch.Tensor, k: int) -> torch.Tensor:
 
 STRAIN_FEATURES = 9 + 6 + 1
 _UPPER = (0, 1, 2, 4, 5, 8)  # upper triangle of a row-major 3x3
-_STRAIN_SCALE = 5.0  # strains of stiff materials are a few percent: bring them to ~unit scale
 
 
 @torch.autocast("cuda", enabled=False)
-def strain_features(f: torch.Tensor) -> torch.Tensor:
+def strain_features(f: torch.Tensor, scale: float = 5.0) -> torch.Tensor:
     """(..., 9) row-major F -> (..., 16): F - I, then the rotation-free C - I (C = F^T F, upper
-    triangle) and det F - 1, both scaled up. Objects tumble, so F - I alone is dominated by
+    triangle) and det F - 1, both multiplied by `scale`. Objects tumble, so F - I alone is dominated by
     rotation; C and det F carry the strain that the material parameters govern. Computed in
     float32 even under autocast."""
     f = f.float()
@@ -74,7 +76,7 @@ def strain_features(f: torch.Tensor) -> torch.Tensor:
     c = (cauchy_green - eye).flatten(-2)[..., _UPPER]
     det = (torch.linalg.det(m) - 1.0).unsqueeze(-1)
     return torch.cat([(f - eye.flatten()).clamp(-10.0, 10.0),
-                      (_STRAIN_SCALE * torch.cat([c, det], dim=-1)).clamp(-20.0, 20.0)], dim=-1)
+                      (scale * torch.cat([c, det], dim=-1)).clamp(-20.0, 20.0)], dim=-1)
 
 
 def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -122,7 +124,7 @@ class Teacher(nn.Module):
         features = torch.cat([
             (nb[..., :3] - centre.unsqueeze(3)) * 10.0,  # tube-local geometry, ~unit scale
             nb[..., 3:6].clamp(-20.0, 20.0),
-            strain_features(nb[..., 6:]),
+            strain_features(nb[..., 6:], c.strain_scale),
         ], dim=-1)
         slices = self.point_mlp(features).amax(dim=3)  # (B, T, A, C)
         a = slices.shape[2]
