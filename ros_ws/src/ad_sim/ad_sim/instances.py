@@ -251,7 +251,7 @@ def _validate_parameters(family: str, given, where: str) -> dict[str, float]:
     return materials.full_parameters(family, out)
 
 
-def _instance_from_entry(entry, index: int, source: str) -> Instance:
+def instance_from_entry(entry, index: int, source: str) -> Instance:
     where = f"{source}: entry {index}"
     if not isinstance(entry, dict):
         raise ValueError(f"{where}: expected a mapping with fields {list(_REQUIRED_FIELDS)}, got {entry!r}")
@@ -338,7 +338,7 @@ def load_instance_file(path: str | Path) -> list[Instance]:
         raise ValueError(f"{path}: instance files end in .yaml, .yml or .json")
     if not isinstance(entries, list) or not entries:
         raise ValueError(f"{path}: expected a non-empty list of entries (shape, material, parameters, seed)")
-    instances = [_instance_from_entry(entry, i, str(path)) for i, entry in enumerate(entries)]
+    instances = [instance_from_entry(entry, i, str(path)) for i, entry in enumerate(entries)]
     ids = [instance.episode_id for instance in instances]
     duplicates = sorted({i for i in ids if ids.count(i) > 1})
     if duplicates:

@@ -202,7 +202,7 @@ class SimNode(Node):
             parameters = {n: float(self.param(n)) for n in SINGLE_INSTANCE_PARAMETERS if not math.isnan(float(self.param(n)))}
             entry = {"shape": self.param("shape"), "material": self.param("material"), "parameters": parameters, "seed": self.param("instance_seed")}
             # The same validation as an instance-file entry (instances owns it).
-            found = [library._instance_from_entry(entry, 0, "node parameters")]
+            found = [library.instance_from_entry(entry, 0, "node parameters")]
         else:
             found = library.benchmark(self.param("size"), self.param("split"), int(self.param("seed")))
         if not found:
