@@ -177,6 +177,22 @@ def bspline_weights(fx: wp.vec3):
     return wp.mat33(w0[0], w0[1], w0[2], w1[0], w1[1], w1[2], w2[0], w2[1], w2[2])
 
 
+@wp.func
+def stencil(x: wp.vec3):
+    """A particle's stencil: lowest node, position relative to it (in cells) and B-spline weights."""
+    xg = x * _INV_DX
+    base = stencil_base(xg)
+    fx = xg - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    return base, fx, bspline_weights(fx)
+
+
+@wp.func
+def stencil_node(w: wp.mat33, fx: wp.vec3, i: int, j: int, k: int):
+    """Weight of stencil node (i, j, k) and its offset from the particle (metres)."""
+    weight = w[i, 0] * w[j, 1] * w[k, 2]
+    return weight, (wp.vec3(float(i), float(j), float(k)) - fx) * _DX
+
+
 @wp.kernel
 def p2g(
     iteration: int,
@@ -200,15 +216,11 @@ def p2g(
     # MLS-MPM: the stress force enters as an affine term, M_p^-1 = 4 / dx^2 for quadratic splines.
     affine = (-dt[s] * volume[s] * 4.0 * _INV_DX * _INV_DX) * stress[p] + m * C[p]
     mv = m * v[p]
-    xg = x[p] * _INV_DX
-    base = stencil_base(xg)
-    fx = xg - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    w = bspline_weights(fx)
+    base, fx, w = stencil(x[p])
     for i in range(3):
         for j in range(3):
             for k in range(3):
-                weight = w[i, 0] * w[j, 1] * w[k, 2]
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * _DX
+                weight, dpos = stencil_node(w, fx, i, j, k)
                 n = node_index(s, base[0] + i, base[1] + j, base[2] + k)
                 wp.atomic_add(grid_mv, n, weight * (mv + affine * dpos))
                 wp.atomic_add(grid_m, n, weight * m)
@@ -243,10 +255,7 @@ def p2g_tiled(
     m = mass[s]
     affine = (-dt[s] * volume[s] * 4.0 * _INV_DX * _INV_DX) * stress[p] + m * C[p]
     mv = m * v[p]
-    xg = x[p] * _INV_DX
-    base = stencil_base(xg)
-    fx = xg - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    w = bspline_weights(fx)
+    base, fx, w = stencil(x[p])
     # Patch origin: smallest stencil base over the block's particles of scene s0.
     mine = active and s == s0
     ox = wp.tile_extract(wp.tile_min(wp.tile(wp.where(mine, base[0], _FAR))), 0)
@@ -261,8 +270,7 @@ def p2g_tiled(
     for i in range(3):
         for j in range(3):
             for k in range(3):
-                weight = w[i, 0] * w[j, 1] * w[k, 2]
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * _DX
+                weight, dpos = stencil_node(w, fx, i, j, k)
                 value = weight * (mv + affine * dpos)
                 local = wp.where(in_patch, ((lx + i) * _PATCH + ly + j) * _PATCH + lz + k, 0)
                 wp.tile_scatter_add(patch, local, wp.vec4(value[0], value[1], value[2], weight * m), in_patch)
@@ -353,17 +361,13 @@ def g2p(
     if iteration >= substeps[s]:
         return
     h = dt[s]
-    xg = x[p] * _INV_DX
-    base = stencil_base(xg)
-    fx = xg - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    w = bspline_weights(fx)
+    base, fx, w = stencil(x[p])
     new_v = wp.vec3(0.0)
     new_C = wp.mat33(0.0)
     for i in range(3):
         for j in range(3):
             for k in range(3):
-                weight = w[i, 0] * w[j, 1] * w[k, 2]
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * _DX
+                weight, dpos = stencil_node(w, fx, i, j, k)
                 gv = grid_v[node_index(s, base[0] + i, base[1] + j, base[2] + k)]
                 new_v += weight * gv
                 new_C += (4.0 * _INV_DX * _INV_DX * weight) * wp.outer(gv, dpos)
