@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_ws" / "src" / "ad_sim")]
 
 from ad_estimator.images import image_to_mask  # noqa: E402
-from ad_estimator.model import BUNDLED_MODEL, EstimatorModel  # noqa: E402
+from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel  # noqa: E402
 from ad_estimator.window import FrameWindow  # noqa: E402
 
 TOPIC = "/latency_benchmark/mask"
@@ -78,7 +78,7 @@ class FakeImage:
 
 
 def run_no_ros(args) -> dict:
-    model = EstimatorModel.load(args.model, threads=args.threads)
+    model = EstimatorModel.load(args.model, threads=args.threads, provider=args.provider)
     latencies, model_times = [], []
     for clip in episode_masks(args.bag, args.episodes):
         window = FrameWindow(model.info.frame_interval, model.info.frame_count, policy=args.policy,
@@ -195,6 +195,8 @@ def main(argv=None) -> int:
     parser.add_argument("--min-frames", type=int, default=1)
     parser.add_argument("--rate", type=float, default=1.0, help="publishing speed factor (ROS mode)")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
+    parser.add_argument("--provider", choices=sorted(PROVIDERS), default="cpu",
+                        help="onnxruntime execution provider (cuda needs onnxruntime-gpu; ROS mode: cpu only)")
     parser.add_argument("--no-ros", action="store_true", help="time conversion + window + model only")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
     parser.add_argument("--publish", action="store_true", help=argparse.SUPPRESS)
@@ -202,11 +204,13 @@ def main(argv=None) -> int:
     if args.publish:
         publish_frames(args)
         return 0
-    model = EstimatorModel.load(args.model, threads=args.threads)
+    if args.provider != "cpu" and not args.no_ros:
+        parser.error("--provider cuda is measured with --no-ros (the node's execution_provider parameter does the same)")
+    model = EstimatorModel.load(args.model, threads=args.threads, provider=args.provider)
     result = run_no_ros(args) if args.no_ros else run_ros(args)
     result["setup"] = {"model": str(args.model), "model_id": model.model_id, "kind": model.info.kind,
                        "mode": "no-ros" if args.no_ros else "ros", "policy": args.policy, "every_n": args.every_n,
-                       "episodes": args.episodes, "threads": args.threads, "cpu": platform.processor() or
+                       "episodes": args.episodes, "threads": args.threads, "provider": args.provider, "cpu": platform.processor() or
                        platform.machine(), "cpu_count": os.cpu_count()}
     print(json.dumps(result, indent=2))
     if args.json:

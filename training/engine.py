@@ -50,7 +50,11 @@ def init_runtime(device: str = "auto") -> Runtime:
         else:
             dev = torch.device("cpu")
         if not dist.is_initialized():
-            dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+            # device_id binds NCCL to this rank's GPU (else it guesses from the rank, and warns).
+            if dev.type == "cuda":
+                dist.init_process_group("nccl", device_id=dev)
+            else:
+                dist.init_process_group("gloo")
         return Runtime(dist.get_rank(), world, dev)
     return Runtime(0, 1, torch.device(device))
 

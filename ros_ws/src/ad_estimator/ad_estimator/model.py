@@ -148,7 +148,17 @@ def parse_metadata(meta: dict[str, str], path: Path) -> ModelInfo:
                      fixed, frame_interval, frame_count, input_size, frame_encoder)
 
 
-def _session(path: Path, threads: int) -> ort.InferenceSession:
+# Execution providers by short name. CPU is the robot's default: for a model this small, copying
+# each frame to a GPU costs about what the whole CPU inference does.
+PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
+
+
+def _session(path: Path, threads: int, provider: str = "cpu") -> ort.InferenceSession:
+    if provider not in PROVIDERS:
+        raise ModelError(f"unknown execution provider {provider!r}; expected one of {sorted(PROVIDERS)}")
+    if PROVIDERS[provider] not in ort.get_available_providers():
+        raise ModelError(f"onnxruntime here has no {PROVIDERS[provider]} (available: {ort.get_available_providers()}); "
+                         "install onnxruntime-gpu for cuda, or use provider cpu")
     if not path.is_file():
         raise ModelError(f"model file not found: {path} (set the model_path parameter / --model to an exported .onnx)")
     options = ort.SessionOptions()
@@ -158,7 +168,7 @@ def _session(path: Path, threads: int) -> ort.InferenceSession:
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     options.log_severity_level = 3
     try:
-        return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(str(path), sess_options=options, providers=[PROVIDERS[provider]])
     except Exception as exc:  # onnxruntime raises several unrelated types for unreadable files
         raise ModelError(f"cannot load ONNX model {path}: {exc}") from exc
 
@@ -195,13 +205,14 @@ class EstimatorModel:
         self.predict(np.zeros((1, *self.feature_shape), np.float32), np.ones(1, bool))
 
     @classmethod
-    def load(cls, path: str | Path, threads: int = 1) -> "EstimatorModel":
-        """Open ``path`` (for streaming models the temporal head; its frame encoder is found via metadata).
+    def load(cls, path: str | Path, threads: int = 1, provider: str = "cpu") -> "EstimatorModel":
+        """Open ``path`` (for streaming models the temporal head; its frame encoder is found via metadata)
+        on the onnxruntime execution provider ``provider`` (a key of PROVIDERS).
 
         Raises ModelError naming the file when it is missing, corrupt or its metadata is incomplete.
         """
         path = Path(path)
-        session = _session(path, threads)
+        session = _session(path, threads, provider)
         info = parse_metadata(session.get_modelmeta().custom_metadata_map, path)
         if info.kind == "clip":
             _require_io(session, path, ("masks", "valid"), ("logits", "params"))
@@ -210,7 +221,7 @@ class EstimatorModel:
             raise ModelError(f"{path} is a frame encoder; pass the temporal head model "
                              f"({path.name.replace('.frame.onnx', '.onnx')}) instead")
         _require_io(session, path, ("embeddings", "valid"), ("logits", "params"))
-        frame_session = _session(info.frame_encoder, threads)
+        frame_session = _session(info.frame_encoder, threads, provider)
         _require_io(frame_session, info.frame_encoder, ("frame",), ("embedding",))
         return cls(info, session, frame_session)
 

@@ -51,6 +51,7 @@ GIL_SWITCH_INTERVAL_S = 0.0005
 PARAMETERS = {
     "model_path": ("", "ONNX model (temporal head for streaming models); empty: the bundled default"),
     "threads": (1, "onnxruntime intra-op threads (1 keeps latency low on a 2-core robot CPU)"),
+    "execution_provider": ("cpu", "onnxruntime execution provider: cpu, or cuda (needs onnxruntime-gpu)"),
     "reliable": (False, "input QoS: reliable instead of sensor-data best effort"),
     "input_depth": (25, "input QoS history depth (a burst of one episode fits)"),
     "gap_threshold": (DEFAULT_GAP_THRESHOLD, "seconds of stamp gap that start a new episode"),
@@ -112,7 +113,8 @@ class EstimatorNode(Node):
     def __init__(self, **kwargs):
         super().__init__("ad_estimator", **kwargs)
         p = self._declare_parameters()
-        self.model = EstimatorModel.load(p["model_path"] or BUNDLED_MODEL, threads=p["threads"])
+        self.model = EstimatorModel.load(p["model_path"] or BUNDLED_MODEL, threads=p["threads"],
+                                         provider=p["execution_provider"])
         self.info = self.model.info
         self.slot_tolerance = p["slot_tolerance"]
         self.window = FrameWindow(self.info.frame_interval, self.info.frame_count, gap_threshold=p["gap_threshold"],
