@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from training import engine
+from training import data, engine
 from training.models.teacher import TEACHER_PRESETS, Teacher, farthest_point_sampling, strain_features
 from training.synthetic import write_synthetic_bag
-from training.train_student import ABLATIONS, student_loss
+from training.train_student import ABLATIONS, VideoSet, student_loss, videos_on_device
 from training.train_student import run as run_student
 from training.train_teacher import SYMMETRIES, transform_trajectory
 from training.train_teacher import run as run_teacher
@@ -32,7 +32,8 @@ def bags(tmp_path_factory):
 
 def _args(bags, out, cache, **kw):
     base = dict(bags=str(bags), cache=str(cache), out=str(out), size="tiny", epochs=2, batch_size=4, lr=3e-3,
-                min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True)
+                min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True,
+                videos_on_device="auto", align_weight=0.1, regl1_weight=0.2)
     base.update(kw)
     return Namespace(**base)
 
@@ -110,6 +111,32 @@ def test_student_ablations_train(bags, teacher_ckpt, tmp_path, ablation):
     # align_only keeps the teacher's predictor frozen; the others train their own.
     assert same == (ablation == "align_only")
     assert ("train_align" in history[0]) == (ablation != "none")
+
+
+def test_batches_built_on_device_match_host_batches(bags, tmp_path):
+    """The videos-on-device path (here with the tensor on the CPU) gives the host path's batches."""
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    frames = data.resized_videos(ds, (32, 32), progress=False)
+    on_device = videos_on_device(frames, torch.device("cpu"), progress=False)
+    videos = np.arange(ds.num_videos)
+    host = VideoSet(ds, videos, frames, None, random_prefix=True, augment=True, seed=3)
+    device = VideoSet(ds, videos, frames, None, random_prefix=True, augment=True, seed=3, on_device=on_device)
+    for epoch in (0, 1):
+        host.set_epoch(epoch), device.set_epoch(epoch)
+        a = host.collate([host[k] for k in range(len(videos))])
+        b = device.collate([device[k] for k in range(len(videos))])
+        assert a.keys() == b.keys()
+        for key in a:
+            torch.testing.assert_close(a[key], b[key], rtol=0, atol=1e-3 if key == "masks" else 0)
+    # Prefixes and mirror flips really happen (so the comparison above covers them).
+    assert (a["valid"].sum(1) < 25).any() and not torch.equal(a["masks"], a["masks"].flip(-1))
+
+
+def test_native_size_videos_are_not_copied(bags, tmp_path):
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    frames = data.resized_videos(ds, (128, 128), progress=False)
+    assert frames[0].dtype == np.uint8 and not list(Path(ds.shards[0]).glob("videos_*x*.npy"))
+    assert data.as_unit_float(frames[0][:1]).max() == 1.0
 
 
 def test_student_loss_weights():

@@ -284,7 +284,11 @@ def resize_masks(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 def resized_videos(dataset: Dataset, size: tuple[int, int], progress: bool = True) -> list[np.ndarray]:
-    """Per shard, every video resized to `size` as float16 in [0, 1], cached beside the shard."""
+    """Per shard, every video at `size`: the cached uint8 0/255 videos themselves at their own size
+    (no copy), else area-resized float16 in [0, 1], cached beside the shard. `as_unit_float` reads
+    either kind."""
+    if dataset.shards and np.load(dataset.shards[0] / "videos.npy", mmap_mode="r").shape[-2:] == tuple(size):
+        return list(dataset._videos)
     out = []
     for shard in tqdm(dataset.shards, desc=f"resize videos {size[0]}x{size[1]}", unit="bag", leave=False,
                       disable=not progress):
@@ -296,3 +300,10 @@ def resized_videos(dataset: Dataset, size: tuple[int, int], progress: bool = Tru
             os.replace(tmp, path)
         out.append(np.load(path, mmap_mode="r"))
     return out
+
+
+def as_unit_float(frames: np.ndarray) -> np.ndarray:
+    """Masks from `resized_videos` (uint8 0/255 or float16 in [0, 1]) -> float32 in [0, 1]."""
+    if frames.dtype == np.uint8:
+        return frames.astype(np.float32) * np.float32(1.0 / 255.0)
+    return np.asarray(frames, dtype=np.float32)

@@ -149,11 +149,14 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
     out_dir.mkdir(parents=True, exist_ok=True)
     # Also used with one process: the same seeded shuffle per epoch, so a resumed run sees the same order.
     sampler = DistributedSampler(train_set, num_replicas=rt.world, rank=rt.rank, shuffle=True, seed=cfg.seed)
-    loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=sampler,
-                        num_workers=0, pin_memory=rt.device.type == "cuda")
+    # A dataset may build its batches itself (on the GPU: then there is nothing to pin).
+    collate = getattr(train_set, "collate", None)
+    loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=sampler, num_workers=0, collate_fn=collate,
+                        pin_memory=rt.device.type == "cuda" and getattr(train_set, "on_device", None) is None)
     val_sampler = DistributedSampler(val_set, num_replicas=rt.world, rank=rt.rank, shuffle=False) \
         if val_set is not None and len(val_set) else None
-    val_loader = DataLoader(val_set, batch_size=cfg.batch_size, sampler=val_sampler) if val_sampler else None
+    val_loader = DataLoader(val_set, batch_size=cfg.batch_size, sampler=val_sampler,
+                            collate_fn=getattr(val_set, "collate", None)) if val_sampler else None
 
     raw = model
     if rt.world > 1:

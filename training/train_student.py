@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch.utils.data import Dataset as TorchDataset
+from torch.utils.data import default_collate
+from tqdm import tqdm
 
 from training import data
 from training.engine import BEST, fit, init_runtime, load_checkpoint, main_first, seed_everything
@@ -23,12 +25,17 @@ MIN_PREFIX = 10  # the streaming student sees random prefixes of 10..25 frames: 
 
 class VideoSet(TorchDataset):
     """Mask videos (one item per instance view) with labels and the teacher target of the
-    video's instance (shared by all its views)."""
+    video's instance (shared by all its views).
+
+    With `on_device` (a tensor of every video, from `videos_on_device`) items carry only the video's
+    row, prefix length and mirror flag, and `collate` assembles the masks on that device: the
+    same batches as the host path, without a host-to-device copy of every clip."""
 
     def __init__(self, ds: data.Dataset, videos: np.ndarray, frames: list[np.ndarray], targets: np.ndarray | None,
-                 random_prefix: bool, augment: bool, seed: int):
+                 random_prefix: bool, augment: bool, seed: int, on_device: torch.Tensor | None = None):
         self.ds, self.videos, self.frames, self.targets = ds, videos, frames, targets
         self.random_prefix, self.augment, self.seed, self.epoch = random_prefix, augment, seed, 0
+        self.on_device = on_device
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
@@ -38,24 +45,54 @@ class VideoSet(TorchDataset):
 
     def __getitem__(self, k: int) -> dict:
         j = int(self.videos[k])
-        s, r = self.ds.video_loc[j]
         i = int(self.ds.video_instance[j])
-        masks = np.array(self.frames[s][r], dtype=np.float32)
         rng = np.random.default_rng([self.seed, self.epoch, j])
         length = int(rng.integers(MIN_PREFIX, FRAME_COUNT + 1)) if self.random_prefix else FRAME_COUNT
-        valid = (np.arange(FRAME_COUNT) < length).astype(np.float32)
-        masks[length:] = 0.0
-        if self.augment and rng.random() < 0.5:  # mirror world = mirrored image
-            masks = masks[:, :, ::-1].copy()
-        item = {"masks": torch.from_numpy(masks), "valid": torch.from_numpy(valid),
+        flip = bool(self.augment and rng.random() < 0.5)  # mirror world = mirrored image
+        item = {"valid": torch.from_numpy((np.arange(FRAME_COUNT) < length).astype(np.float32)),
                 "label": torch.tensor(self.ds.labels[i]), "target": torch.from_numpy(self.ds.params_norm[i]),
                 "mask": torch.from_numpy(self.ds.param_mask[i])}
         if self.targets is not None:
             item["z_t"] = torch.from_numpy(self.targets[i])
+        if self.on_device is not None:
+            item.update(row=torch.tensor(j), flip=torch.tensor(flip))
+            return item
+        s, r = self.ds.video_loc[j]
+        masks = data.as_unit_float(self.frames[s][r])
+        masks[length:] = 0.0
+        if flip:
+            masks = masks[:, :, ::-1].copy()
+        item["masks"] = torch.from_numpy(masks)
         return item
 
+    def collate(self, items: list[dict]) -> dict:
+        batch = default_collate(items)
+        if self.on_device is None:
+            return batch
+        rows, flip = batch.pop("row").to(self.on_device.device), batch.pop("flip").to(self.on_device.device)
+        masks = self.on_device[rows].float()
+        if self.on_device.dtype == torch.uint8:
+            masks = masks * (1.0 / 255.0)
+        masks = torch.where(flip[:, None, None, None], masks.flip(-1), masks)
+        batch["masks"] = masks * batch["valid"].to(masks.device)[:, :, None, None]
+        return batch
 
-def student_loss(ablation: str, alpha: float):
+
+def videos_on_device(frames: list[np.ndarray], device: torch.device, progress: bool) -> torch.Tensor:
+    """Every video of `frames` (per shard, as `resized_videos` gives them) in one tensor on `device`,
+    rows in global video order. The paper split at 128x128 uint8 is 15 GB: fine on a data-centre GPU."""
+    total = sum(len(f) for f in frames)
+    out = torch.empty((total, *frames[0].shape[1:]), dtype=torch.from_numpy(frames[0][:1]).dtype, device=device)
+    row = 0
+    for f in tqdm(frames, desc="videos to device", unit="bag", disable=not progress, leave=False):
+        for start in range(0, len(f), 1024):  # bounded host memory per copy
+            chunk = np.ascontiguousarray(f[start:start + 1024])
+            out[row:row + len(chunk)] = torch.from_numpy(chunk).to(device)
+            row += len(chunk)
+    return out
+
+
+def student_loss(ablation: str, alpha: float, align_weight: float = ALIGN_WEIGHT, regl1_weight: float = REGL1_WEIGHT):
     if ablation not in ABLATIONS:
         raise ValueError(f"unknown ablation {ablation!r}; expected one of {ABLATIONS}")
 
@@ -67,12 +104,12 @@ def student_loss(ablation: str, alpha: float):
         logs = {"ce": ce.detach(), "regl1": reg.detach(), "score": (ce + reg).detach(),
                 "acc": (out["logits"].argmax(-1) == batch["label"]).float().mean()}
         if ablation == "none":
-            return CE_WEIGHT * ce + REGL1_WEIGHT * reg + NLL_WEIGHT * nll, logs
+            return CE_WEIGHT * ce + regl1_weight * reg + NLL_WEIGHT * nll, logs
         align = align_loss(out["z"], batch["z_t"], alpha)
         logs["align"] = align.detach()
         if ablation == "align_only":  # predictions come from the teacher's frozen predictor
             return align, logs
-        return ALIGN_WEIGHT * align + CE_WEIGHT * ce + REGL1_WEIGHT * reg + NLL_WEIGHT * nll, logs
+        return align_weight * align + CE_WEIGHT * ce + regl1_weight * reg + NLL_WEIGHT * nll, logs
 
     return loss_fn
 
@@ -95,6 +132,10 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--ablation", choices=ABLATIONS, default="full",
                    help="none: task losses only; align_only: alignment only (teacher's predictor); full: both")
     p.add_argument("--alpha", type=float, default=0.5, help="weight of the L1 term inside the alignment loss")
+    p.add_argument("--align-weight", type=float, default=ALIGN_WEIGHT, help="weight of the alignment loss (SPEC: 0.1)")
+    p.add_argument("--regl1-weight", type=float, default=REGL1_WEIGHT, help="weight of RegL1 (SPEC: 0.2)")
+    p.add_argument("--videos-on-device", choices=["auto", "yes", "no"], default="auto",
+                   help="keep every training video on the GPU and build batches there (auto: on CUDA)")
     p.add_argument("--full-clips", action="store_true",
                    help="train on full 25-frame clips only (default: streaming students see random prefixes)")
     return p
@@ -126,11 +167,15 @@ def run(args) -> Path:
     model.to(rt.device)
     del teacher
     prefix = config.kind == "streaming" and not args.full_clips
-    train_set = VideoSet(ds, ds.videos_of(train_idx), frames, targets, prefix, True, args.seed)
-    val_set = VideoSet(ds, ds.first_view_videos(val_idx), frames, targets, False, False, args.seed)
+    on_device = None
+    if args.videos_on_device == "yes" or (args.videos_on_device == "auto" and rt.device.type == "cuda"):
+        on_device = videos_on_device(frames, rt.device, rt.main and not args.no_progress)
+    train_set = VideoSet(ds, ds.videos_of(train_idx), frames, targets, prefix, True, args.seed, on_device)
+    val_set = VideoSet(ds, ds.first_view_videos(val_idx), frames, targets, False, False, args.seed, on_device)
     meta = {"config": config.to_dict(), "size": args.size, "ablation": args.ablation, "kind": config.kind,
-            "teacher": str(args.teacher or ""), "seed": args.seed}
+            "teacher": str(args.teacher or ""), "seed": args.seed,
+            "loss_weights": {"align": args.align_weight, "ce": CE_WEIGHT, "regl1": args.regl1_weight, "nll": NLL_WEIGHT}}
     out = Path(args.out)
-    fit(model, train_set, val_set, student_loss(args.ablation, args.alpha), out, fit_config(args), rt, meta,
+    fit(model, train_set, val_set, student_loss(args.ablation, args.alpha, args.align_weight, args.regl1_weight), out, fit_config(args), rt, meta,
         desc=f"student[{config.kind},{args.ablation}]")
     return out / BEST
