@@ -10,13 +10,15 @@
 #   NPROC [number of GPUs]      processes (one per GPU; >1 runs through torchrun/DDP)
 #   SIZE [paper]                model size preset: tiny | small | paper
 #   TEACHER_EPOCHS [300] STUDENT_EPOCHS [20] BATCH [32] (per process) LR [1e-4]
+#   ABLATION_EPOCHS [STUDENT_EPOCHS]  epochs of the none and align_only ablations
+#   TEACHER [unset]             a trained teacher checkpoint to use instead of training one
 #   ABLATIONS ["none align_only full"]  KINDS ["streaming uniformer"]
 #   PARALLEL [0]                1: train the students side by side on one GPU (logs in OUT/<name>.log)
 #   STOP_AFTER [0]              >0: every training step stops after that many epochs in this run
 #   CACHE [OUT/cache]           DEVICE [cuda] (cpu: quick end-to-end checks of this script)
 set -euo pipefail
 if [ $# -ne 2 ]; then
-    sed -n '2,18p' "$0"
+    sed -n '2,20p' "$0"
     exit 2
 fi
 BAGS=$1
@@ -29,6 +31,7 @@ NPROC=$(( NPROC > 0 ? NPROC : 1 ))
 SIZE=${SIZE:-paper}
 TEACHER_EPOCHS=${TEACHER_EPOCHS:-300}
 STUDENT_EPOCHS=${STUDENT_EPOCHS:-20}
+ABLATION_EPOCHS=${ABLATION_EPOCHS:-$STUDENT_EPOCHS}
 BATCH=${BATCH:-32}
 LR=${LR:-1e-4}
 ABLATIONS=${ABLATIONS:-none align_only full}
@@ -51,10 +54,22 @@ COMMON=(--cache "$CACHE" --size "$SIZE" --batch-size "$BATCH" --lr "$LR" --devic
 mkdir -p "$OUT"
 
 echo "==> cache ($BAGS)"
-for split in train seen unseen; do python -m training cache --bags "$BAGS/$split" --cache "$CACHE"; done
+# One process per bag: decoding is CPU-bound and the cache is keyed per bag.
+pids=()
+for bag in "$BAGS"/{train,seen,unseen}/*/; do
+    python -m training cache --bags "$bag" --cache "$CACHE" >/dev/null &
+    pids+=($!)
+done
+for pid in "${pids[@]}"; do wait "$pid"; done
 
-echo "==> teacher ($NPROC process(es), $TEACHER_EPOCHS epochs)"
-"${RUN[@]}" teacher --bags "$BAGS/train" --out "$OUT/teacher" --epochs "$TEACHER_EPOCHS" "${COMMON[@]}"
+if [ -n "${TEACHER:-}" ]; then
+    echo "==> teacher: $TEACHER"
+    mkdir -p "$OUT/teacher"
+    cp "$TEACHER" "$OUT/teacher/best.pt"
+else
+    echo "==> teacher ($NPROC process(es), $TEACHER_EPOCHS epochs)"
+    "${RUN[@]}" teacher --bags "$BAGS/train" --out "$OUT/teacher" --epochs "$TEACHER_EPOCHS" "${COMMON[@]}"
+fi
 
 # Students: each trains in its own process; with PARALLEL=1 they share the GPU at the same time
 # (one H200 has room for all of them, and the data loaders then keep more CPU cores busy).
@@ -67,10 +82,13 @@ for kind in $KINDS; do
     done
 done
 pids=()
+trap '[ ${#pids[@]} -eq 0 ] || kill "${pids[@]}" 2>/dev/null' EXIT  # a time limit stops the students too
 for student in "${STUDENTS[@]}"; do
     kind=${student%%:*} ablation=${student##*:} name="${student/:/_}"
-    echo "==> student $name ($STUDENT_EPOCHS epochs)"
-    cmd=("${RUN[@]}" student --bags "$BAGS/train" --out "$OUT/$name" --epochs "$STUDENT_EPOCHS"
+    epochs=$STUDENT_EPOCHS
+    [ "$ablation" = full ] || epochs=$ABLATION_EPOCHS
+    echo "==> student $name ($epochs epochs)"
+    cmd=("${RUN[@]}" student --bags "$BAGS/train" --out "$OUT/$name" --epochs "$epochs"
          --teacher "$OUT/teacher/best.pt" --kind "$kind" --ablation "$ablation" "${COMMON[@]}")
     if [ "$PARALLEL" = 1 ]; then
         "${cmd[@]}" --no-progress >"$OUT/$name.log" 2>&1 &
@@ -80,6 +98,7 @@ for student in "${STUDENTS[@]}"; do
     fi
 done
 for pid in "${pids[@]}"; do wait "$pid"; done
+pids=()
 for student in "${STUDENTS[@]}"; do
     name="${student/:/_}"
     python -m training export --checkpoint "$OUT/$name/best.pt" --out "$OUT/models/$name.onnx"
