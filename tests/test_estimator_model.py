@@ -105,6 +105,25 @@ def test_missing_model_names_the_file(tmp_path):
         EstimatorModel.load(path)
 
 
+def test_unknown_execution_provider_is_refused(tmp_path):
+    with pytest.raises(ModelError, match="unknown execution provider 'tpu'"):
+        EstimatorModel.load(build_clip_model(tmp_path / "m.onnx"), provider="tpu")
+
+
+def test_cuda_provider_loads_or_says_what_is_missing(tmp_path):
+    """provider cuda: runs where onnxruntime has the CUDA provider, else a clear error (never a
+    silent fall-back to the CPU)."""
+    import onnxruntime as ort
+
+    path = build_streaming_model(tmp_path)
+    if "CUDAExecutionProvider" in ort.get_available_providers():
+        model = EstimatorModel.load(path, provider="cuda")
+        assert model.predict(np.zeros((1, *model.feature_shape), np.float32), np.ones(1, bool)).frames_used == 1
+    else:
+        with pytest.raises(ModelError, match="no CUDAExecutionProvider.*onnxruntime-gpu"):
+            EstimatorModel.load(path, provider="cuda")
+
+
 def test_corrupt_model_names_the_file(tmp_path):
     path = tmp_path / "corrupt.onnx"
     path.write_bytes(b"\x08\x07garbage" * 100)
