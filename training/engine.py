@@ -97,10 +97,22 @@ def set_rng_state(state: dict) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
+def _on_cpu(obj):
+    """Tensors anywhere in nested dicts/lists moved to the CPU."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: _on_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_on_cpu(v) for v in obj)
+    return obj
+
+
 def save_checkpoint(path: Path, state: dict) -> None:
-    """Atomic: a kill mid-write leaves the previous checkpoint intact."""
+    """Atomic: a kill mid-write leaves the previous checkpoint intact. Tensors are saved from the
+    CPU, so a checkpoint trained on a GPU opens with a bare torch.load on a CPU-only machine."""
     tmp = path.with_name(path.name + ".tmp")
-    torch.save(state, tmp)
+    torch.save(_on_cpu(state), tmp)
     os.replace(tmp, path)
 
 
