@@ -50,3 +50,16 @@ def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
     # Re-running finds every stage done: no epoch is trained again.
     assert main(args) == 0
     assert "epoch=1" not in capsys.readouterr().out
+    # Evaluating again with chosen prefix lengths and threads scores just those (25 always).
+    onnx_path = tmp_path / "run" / "models" / "streaming_full.onnx"
+    report_dir = tmp_path / "few_frames"
+    assert main(["evaluate", "--model", str(onnx_path), "--bags", str(data / "tiny" / "unseen"), "--cache",
+                 str(tmp_path / "cache"), "--out", str(report_dir), "--frames", "15,20", "--threads", "2",
+                 "--no-progress"]) == 0
+    assert set(json.loads((report_dir / "metrics.json").read_text())["frames"]) == {"25", "20", "15"}
+
+
+def test_evaluate_rejects_bad_prefix_lengths(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["evaluate", "--model", "m.onnx", "--bags", "b", "--frames", "0,30"])
+    assert exit_info.value.code == 2 and "prefix lengths must lie in 1..25" in capsys.readouterr().err

@@ -41,10 +41,11 @@ def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORE
 
 
 def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, out: str | Path | None,
-                   title: str | None = None, progress: bool = True) -> dict:
-    model = EstimatorModel.load(model_path)
+                   title: str | None = None, progress: bool = True, threads: int = 1,
+                   frames: tuple[int, ...] = FRAMES_SCORED) -> dict:
+    model = EstimatorModel.load(model_path, threads=threads)
     ds = data.load_dataset(bags, cache, progress=progress)
-    by_frames = predict_dataset(model, ds, progress=progress)
+    by_frames = predict_dataset(model, ds, frames, progress=progress)
     title = title or f"{model.model_id} on {bags}"
     if out is None:
         out = Path(model_path).with_suffix("").with_name(Path(model_path).stem + "_eval")
@@ -67,12 +68,25 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--cache", default=".cache/training", help="array cache folder")
     p.add_argument("--out", help="report folder (default: <model>_eval next to the model)")
     p.add_argument("--title", help="report title")
+    p.add_argument("--threads", type=int, default=1,
+                   help="onnxruntime threads (clip models re-read every frame per estimate: give them cores)")
+    p.add_argument("--frames", type=_frame_list, default=FRAMES_SCORED,
+                   help=f"comma-separated prefix lengths to score (default {','.join(map(str, FRAMES_SCORED))}; "
+                        f"{FRAME_COUNT} is always scored)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
 
+def _frame_list(text: str) -> tuple[int, ...]:
+    values = {int(v) for v in text.split(",") if v.strip()}
+    if not values or min(values) < 1 or max(values) > FRAME_COUNT:
+        raise argparse.ArgumentTypeError(f"prefix lengths must lie in 1..{FRAME_COUNT}, got {text!r}")
+    return tuple(sorted(values | {FRAME_COUNT}, reverse=True))
+
+
 def run(args) -> dict:
-    return evaluate_model(args.model, args.bags, args.cache, args.out, args.title, not args.no_progress)
+    return evaluate_model(args.model, args.bags, args.cache, args.out, args.title, not args.no_progress,
+                          args.threads, args.frames)
 
 
 
