@@ -119,7 +119,7 @@ else
         "$VENV/bin/colcon" build --symlink-install \
             --event-handlers console_cohesion+ desktop_notification- status- \
             --cmake-args -DPython3_EXECUTABLE="$VENV_PY" -DCMAKE_BUILD_TYPE=Release
-    ) > "$BUILD_LOG" 2>&1 || { tail -n 60 "$BUILD_LOG" >&2; die "colcon build failed (full log: $WS/build.log)"; }
+    ) > "$BUILD_LOG" 2>&1 || { tail -n 60 "$BUILD_LOG" >&2; die "colcon build failed (full log: $BUILD_LOG)"; }
     grep -E '^(Finished|Summary)' "$BUILD_LOG" | sed 's/^/    /'
     echo "$FINGERPRINT" > "$BUILD_STAMP"
 fi

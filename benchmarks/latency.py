@@ -32,7 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_ws" / "src" / "ad_sim")]
 
-from ad_estimator.images import image_to_mask  # noqa: E402
+from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel  # noqa: E402
 from ad_estimator.window import FrameWindow  # noqa: E402
 
@@ -44,7 +44,7 @@ EPISODE_NS = 1_500_000_000
 def episode_masks(bag: Path | None, count: int) -> list[np.ndarray]:
     """Mask clips (25, H, W) uint8: from a bag's first camera if given, else a synthetic falling disc."""
     if bag is not None:
-        from ad_estimator.evaluate import MAX_IMAGE_PIXELS, episode_frames
+        from ad_estimator.evaluate import episode_frames
         clips = [np.stack([image_to_mask(m, MAX_IMAGE_PIXELS) for _, m in frames])
                  for _, frames in episode_frames(bag)]
     else:
@@ -77,8 +77,7 @@ class FakeImage:
         self.data = mask.tobytes()
 
 
-def run_no_ros(args) -> dict:
-    model = EstimatorModel.load(args.model, threads=args.threads, provider=args.provider)
+def run_no_ros(args, model: EstimatorModel) -> dict:
     latencies, model_times = [], []
     for clip in episode_masks(args.bag, args.episodes):
         window = FrameWindow(model.info.frame_interval, model.info.frame_count, policy=args.policy,
@@ -94,7 +93,7 @@ def run_no_ros(args) -> dict:
                 return feature
 
             start = time.perf_counter()
-            binary = image_to_mask(image, 4096 * 4096)
+            binary = image_to_mask(image, MAX_IMAGE_PIXELS)
             for out in window.add(k * FRAME_NS, binary.shape, lambda: encode(binary)):
                 model_start = time.perf_counter()
                 model.predict(out.features, out.valid)
@@ -207,7 +206,7 @@ def main(argv=None) -> int:
     if args.provider != "cpu" and not args.no_ros:
         parser.error("--provider cuda is measured with --no-ros (the node's execution_provider parameter does the same)")
     model = EstimatorModel.load(args.model, threads=args.threads, provider=args.provider)
-    result = run_no_ros(args) if args.no_ros else run_ros(args)
+    result = run_no_ros(args, model) if args.no_ros else run_ros(args)
     result["setup"] = {"model": str(args.model), "model_id": model.model_id, "kind": model.info.kind,
                        "mode": "no-ros" if args.no_ros else "ros", "policy": args.policy, "every_n": args.every_n,
                        "episodes": args.episodes, "threads": args.threads, "provider": args.provider, "cpu": platform.processor() or

@@ -18,14 +18,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from sim_throughput import make_scene  # noqa: E402
+from sim_throughput import SHAPE_SIZE, make_scene  # noqa: E402
 
 from ad_sim import mpm  # noqa: E402
 
 
 def run(device: str, output: Path, count: int, frames: int) -> None:
     rng = np.random.default_rng(123)
-    scenes = [make_scene(rng, 0.175) for _ in range(count)]
+    scenes = [make_scene(rng, SHAPE_SIZE["small"]) for _ in range(count)]
     results = mpm.simulate(scenes, device=device, frame_count=frames)
     np.savez_compressed(
         output,

@@ -20,6 +20,10 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
+from ad_estimator import metrics
+
 ROOT = Path(__file__).resolve().parents[1]
 ADRUN = ROOT / "scripts" / "adrun"
 SHORT = {"youngs_modulus": ("E", "Pa"), "poissons_ratio": ("nu", ""), "yield_stress": ("yield", "Pa"),
@@ -91,27 +95,21 @@ class Listener:
 
 
 def summary(rows) -> str:
+    """Accuracy, and the paper's parameter errors over the correctly classified episodes."""
     if not rows:
         return "no estimates"
     correct = sum(i.material == e.material for i, e in rows)
-    errors = {}
+    pairs: dict[str, list[tuple[float, float]]] = {}
     for instance, estimate in rows:
         if instance.material != estimate.material:
             continue
         predicted = dict(zip(estimate.parameter_names, estimate.parameters))
-        for name, true in zip(instance.parameter_names, instance.parameters):
-            value = predicted.get(name, math.nan)
-            if name in ("youngs_modulus", "yield_stress"):
-                error = abs(math.log(value) - math.log(true))
-            elif name == "friction_angle":
-                error = abs(math.degrees(value - true))
-            else:
-                error = abs(value - true)
-            if math.isfinite(error) and error > 0:  # fixed parameters (sand's E, nu) are exact by construction
-                errors.setdefault(name, []).append(error)
-    kinds = {"youngs_modulus": "log-MAE", "yield_stress": "log-MAE", "friction_angle": "MAE deg",
-             "poissons_ratio": "MAE"}
-    parts = [f"{SHORT[n][0]} {kinds[n]} {sum(v) / len(v):.3f}" for n, v in errors.items()]
+        true = dict(zip(instance.parameter_names, instance.parameters))
+        for name in metrics.family_ranges()[instance.material]:  # sampled parameters only
+            pairs.setdefault(name, []).append((predicted.get(name, math.nan), true[name]))
+    kinds = {"log_mae": "log-MAE", "mae_deg": "MAE deg", "mae": "MAE"}
+    parts = [f"{SHORT[n][0]} {kinds[metrics.ERROR_KIND[n]]} "
+             f"{metrics.parameter_error(n, *np.array(v, dtype=float).T):.3f}" for n, v in pairs.items()]
     return f"accuracy {correct}/{len(rows)}; over correctly classified: " + (", ".join(parts) or "-")
 
 

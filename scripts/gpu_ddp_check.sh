@@ -7,7 +7,7 @@
 # histories and ddp_check.json in WORK. Knobs: EPOCHS [8], DATA [small] (benchmark size generated),
 # MODEL [paper] (model preset: the paper-size teacher gives the GPUs enough work to compare).
 set -euo pipefail
-[ $# -eq 1 ] || { sed -n '2,7p' "$0"; exit 2; }
+[ $# -eq 1 ] || { sed -n '2,8p' "$0"; exit 2; }
 WORK=$1
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -32,7 +32,7 @@ timed() {  # timed NAME CMD...: runs CMD, logs to WORK/NAME.log, records start a
     "$@" >>"$WORK/$name.log" 2>&1 || { tail -20 "$WORK/$name.log" >&2; exit 1; }
     echo "$start $(date +%s.%N)" >"$WORK/$name.seconds"
 }
-rm -rf "$WORK/single" "$WORK/ddp" "$WORK/ddp_student"
+rm -rf "$WORK/single" "$WORK/ddp" "$WORK/ddp_student" "$WORK"/*.log "$WORK"/*.seconds
 timed single python -m training teacher --out "$WORK/single" --epochs "$EPOCHS" "${COMMON[@]}"
 # DDP: stop after half the epochs (as a time limit would), then resume to the end.
 timed ddp_first "${DDP[@]}" teacher --out "$WORK/ddp" --epochs "$EPOCHS" --stop-after $((EPOCHS / 2)) "${COMMON[@]}"

@@ -18,7 +18,7 @@
 #   CACHE [OUT/cache]           DEVICE [cuda] (cpu: quick end-to-end checks of this script)
 set -euo pipefail
 if [ $# -ne 2 ]; then
-    sed -n '2,20p' "$0"
+    sed -n '2,18p' "$0"
     exit 2
 fi
 BAGS=$1
@@ -62,6 +62,12 @@ for bag in "$BAGS"/{train,seen,unseen}/*/; do
 done
 for pid in "${pids[@]}"; do wait "$pid"; done
 
+# trained DIR EPOCHS: DIR's run has all EPOCHS epochs (a --stop-after slice or a kill leaves fewer).
+trained() {
+    python -c 'import json, sys; sys.exit(len(json.load(open(sys.argv[1]))) < int(sys.argv[2]))' \
+        "$1/history.json" "$2" 2>/dev/null
+}
+
 if [ -n "${TEACHER:-}" ]; then
     echo "==> teacher: $TEACHER"
     mkdir -p "$OUT/teacher"
@@ -69,6 +75,8 @@ if [ -n "${TEACHER:-}" ]; then
 else
     echo "==> teacher ($NPROC process(es), $TEACHER_EPOCHS epochs)"
     "${RUN[@]}" teacher --bags "$BAGS/train" --out "$OUT/teacher" --epochs "$TEACHER_EPOCHS" "${COMMON[@]}"
+    # Students distil the finished teacher only: after a STOP_AFTER slice, run this script again.
+    trained "$OUT/teacher" "$TEACHER_EPOCHS" || { echo "==> teacher not finished; run again to go on"; exit 0; }
 fi
 
 # Students: each trains in its own process; with PARALLEL=1 they share the GPU at the same time
@@ -87,6 +95,7 @@ for student in "${STUDENTS[@]}"; do
     kind=${student%%:*} ablation=${student##*:} name="${student/:/_}"
     epochs=$STUDENT_EPOCHS
     [ "$ablation" = full ] || epochs=$ABLATION_EPOCHS
+    trained "$OUT/$name" "$epochs" && { echo "==> student $name: trained"; continue; }
     echo "==> student $name ($epochs epochs)"
     cmd=("${RUN[@]}" student --bags "$BAGS/train" --out "$OUT/$name" --epochs "$epochs"
          --teacher "$OUT/teacher/best.pt" --kind "$kind" --ablation "$ablation" "${COMMON[@]}")
@@ -100,14 +109,20 @@ done
 for pid in "${pids[@]}"; do wait "$pid"; done
 pids=()
 for student in "${STUDENTS[@]}"; do
-    name="${student/:/_}"
+    name="${student/:/_}" model="$OUT/models/${student/:/_}.onnx"
+    epochs=$STUDENT_EPOCHS
+    [ "${student##*:}" = full ] || epochs=$ABLATION_EPOCHS
+    trained "$OUT/$name" "$epochs" || { echo "==> $name not finished; run again to go on"; continue; }
     # A clip model re-reads all 25 frames per estimate (~0.4 s on one core at paper size): give it every core.
     threads=1
     [ "${student%%:*}" = uniformer ] && threads=$(nproc)
-    python -m training export --checkpoint "$OUT/$name/best.pt" --out "$OUT/models/$name.onnx"
+    # Each step is skipped when its output is newer than its input (a re-run after a time limit).
+    [ "$model" -nt "$OUT/$name/best.pt" ] ||
+        python -m training export --checkpoint "$OUT/$name/best.pt" --out "$model"
     for split in seen unseen; do
-        python -m training evaluate --model "$OUT/models/$name.onnx" --bags "$BAGS/$split" --cache "$CACHE" \
-            --out "$OUT/reports/${name}_$split" --title "$name on $split" --threads "$threads" --no-progress
+        [ "$OUT/reports/${name}_$split/metrics.json" -nt "$model" ] ||
+            python -m training evaluate --model "$model" --bags "$BAGS/$split" --cache "$CACHE" \
+                --out "$OUT/reports/${name}_$split" --title "$name on $split" --threads "$threads" --no-progress
     done
 done
 echo "==> done: models in $OUT/models, reports in $OUT/reports"

@@ -33,7 +33,7 @@ def bags(tmp_path_factory):
 def _args(bags, out, cache, **kw):
     base = dict(bags=str(bags), cache=str(cache), out=str(out), size="tiny", epochs=2, batch_size=4, lr=3e-3,
                 min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True,
-                videos_on_device="auto", align_weight=0.1, regl1_weight=0.2)
+                videos_on_device="auto", align_weight=0.1, regl1_weight=0.2, stop_after=0, amp=False)
     base.update(kw)
     return Namespace(**base)
 

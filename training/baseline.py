@@ -209,9 +209,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 def run(args) -> dict:
     progress = not args.no_progress
     if args.bags:
-        instances, observed = observed_from_bags(args.bags)
-        pick = select(args.instances, len(instances), args.seed)
-        instances, observed = [instances[i] for i in pick], observed[pick]
+        instances, observed = observed_from_bags(args.bags, args.instances, args.seed)
         name = Path(args.bags).name
     else:
         every = benchmark(args.size, args.split)

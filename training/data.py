@@ -287,7 +287,7 @@ def resized_videos(dataset: Dataset, size: tuple[int, int], progress: bool = Tru
     """Per shard, every video at `size`: the cached uint8 0/255 videos themselves at their own size
     (no copy), else area-resized float16 in [0, 1], cached beside the shard. `as_unit_float` reads
     either kind."""
-    if dataset.shards and np.load(dataset.shards[0] / "videos.npy", mmap_mode="r").shape[-2:] == tuple(size):
+    if dataset._videos[0].shape[-2:] == tuple(size):
         return list(dataset._videos)
     out = []
     for shard in tqdm(dataset.shards, desc=f"resize videos {size[0]}x{size[1]}", unit="bag", leave=False,

@@ -182,12 +182,13 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
 
     last = out_dir / LAST
     if last.exists():
-        state = load_checkpoint(last, rt.device)
+        # Loaded on the CPU: load_state_dict moves weights and optimizer moments to the parameters'
+        # device, and AdamW's step counters must stay on the CPU (on a GPU each step would sync).
+        state = load_checkpoint(last)
         raw.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         epoch, step, history, best = state["epoch"], state["step"], state["history"], state["best"]
-        set_rng_state({k: (v.cpu() if isinstance(v, torch.Tensor) else [t.cpu() for t in v])
-                       for k, v in state["rng"].items()})
+        set_rng_state(state["rng"])
         if rt.main:
             tqdm.write(f"{desc}: resumed from {last} at epoch {epoch}")
 

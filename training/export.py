@@ -26,6 +26,7 @@ from ad_sim.materials import (
     PARAMETER_NAMES,
     PARAMETER_RANGES,
 )
+from training.evaluate import metrics_path
 from training.train_student import load_student
 
 OUTPUTS = ["logits", "params", "params_logvar"]
@@ -84,6 +85,11 @@ def _torch_export(module, args, path, inputs, outputs, dynamic) -> None:
                       opset_version=OPSET, dynamo=False, do_constant_folding=True)
 
 
+def frame_encoder_path(onnx_path: Path) -> Path:
+    """<name>.frame.onnx beside a streaming student's <name>.onnx."""
+    return onnx_path.with_name(onnx_path.stem + ".frame.onnx")
+
+
 def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None = None) -> list[Path]:
     """Writes the ONNX file(s) for a student checkpoint; `out` is <name>.onnx. Returns the paths."""
     model, meta = load_student(checkpoint)
@@ -98,7 +104,7 @@ def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None
     written = []
     with torch.no_grad():
         if config.kind == "streaming":
-            frame_path = out.with_name(out.stem + ".frame.onnx")
+            frame_path = frame_encoder_path(out)
             _export(model.frame_encoder, (torch.zeros(2, 1, h, w),), frame_path, ["frame"], ["embedding"],
                     {"frame": {0: "batch"}, "embedding": {0: "batch"}})
             d = config.embed_dim
@@ -121,7 +127,7 @@ def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None
     history = Path(checkpoint).with_name("history.json")
     record = {"model": out.name, "model_id": model_id, "kind": config.kind, "training": meta,
               "final_epoch": json.loads(history.read_text())[-1] if history.exists() else None}
-    out.with_name(out.name.removesuffix(".onnx") + ".metrics.json").write_text(json.dumps(record, indent=2))
+    metrics_path(out).write_text(json.dumps(record, indent=2))
     return written
 
 
@@ -142,7 +148,7 @@ def verify_export(checkpoint: str | Path, onnx_path: str | Path, seed: int = 0, 
     onnx_path = Path(onnx_path)
     opts = ort.SessionOptions()
     if model.config.kind == "streaming":
-        frame = ort.InferenceSession(str(onnx_path.with_name(onnx_path.stem + ".frame.onnx")), opts)
+        frame = ort.InferenceSession(str(frame_encoder_path(onnx_path)), opts)
         emb = frame.run(None, {"frame": masks.reshape(-1, 1, h, w)})[0].reshape(2, FRAME_COUNT, -1)
         got = ort.InferenceSession(str(onnx_path), opts).run(OUTPUTS, {"embeddings": emb, "valid": valid})
     else:

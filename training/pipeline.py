@@ -44,7 +44,7 @@ def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str) -
 def _stage_args(args, **kw) -> Namespace:
     common = dict(cache=args.cache, size=args.size, lr=LR[args.size], min_lr=1e-6, weight_decay=1e-4,
                   val_fraction=args.val_fraction, seed=args.seed, device=args.device, threads=args.threads,
-                  no_progress=args.no_progress)
+                  no_progress=args.no_progress, stop_after=0, amp=False)
     common.update(kw)
     return Namespace(**common)
 
@@ -140,20 +140,15 @@ def install(onnx_path: Path, metrics_path: Path, folder: Path, name: str = "defa
     import onnx
 
     folder.mkdir(parents=True, exist_ok=True)
-    frame = onnx_path.with_name(onnx_path.stem + ".frame.onnx")
+    frame = export.frame_encoder_path(onnx_path)
     target = folder / f"{name}.onnx"
     if frame.exists():
-        shutil.copyfile(frame, folder / f"{name}.frame.onnx")
-        model = onnx.load(str(onnx_path))
-        for prop in model.metadata_props:
-            if prop.key == "ad.frame_encoder":
-                prop.value = f"{name}.frame.onnx"
-        onnx.save(model, str(target))
-        frame_model = onnx.load(str(folder / f"{name}.frame.onnx"))
-        for prop in frame_model.metadata_props:
-            if prop.key == "ad.frame_encoder":
-                prop.value = f"{name}.frame.onnx"
-        onnx.save(frame_model, str(folder / f"{name}.frame.onnx"))
+        for source, destination in ((frame, folder / f"{name}.frame.onnx"), (onnx_path, target)):
+            model = onnx.load(str(source))
+            for prop in model.metadata_props:
+                if prop.key == "ad.frame_encoder":
+                    prop.value = f"{name}.frame.onnx"
+            onnx.save(model, str(destination))
     else:
         shutil.copyfile(onnx_path, target)
     shutil.copyfile(metrics_path, folder / f"{name}.metrics.json")

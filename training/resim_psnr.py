@@ -50,21 +50,19 @@ def instance_of(msg) -> Instance:
 
 def video_of(frames) -> np.ndarray:
     """(T, H, W) uint8 {0, 255} masks of [(stamp_ns, Image)] frames."""
-    from ad_estimator.evaluate import MAX_IMAGE_PIXELS
-    from ad_estimator.images import image_to_mask
+    from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask
 
     return np.stack([image_to_mask(image, MAX_IMAGE_PIXELS) for _, image in frames])
 
 
-def observed_from_bags(bags: str | Path) -> tuple[list[Instance], np.ndarray]:
-    """Instances (ground truth) and recorded camera-0 videos (N, 25, H, W) of the complete episodes."""
-    instances, videos = [], []
-    for _, msg, frames in bag_episodes(bags):
-        instances.append(instance_of(msg))
-        videos.append(video_of(frames))
-    if not instances:
+def observed_from_bags(bags: str | Path, count: int = 0, seed: int = 0) -> tuple[list[Instance], np.ndarray]:
+    """Instances (ground truth) and recorded camera-0 videos (N, 25, H, W) of the complete episodes,
+    or of a seeded random subset of `count` of them (see `select`); only those videos are decoded."""
+    episodes = list(bag_episodes(bags))
+    if not episodes:
         raise ValueError(f"no complete episode with {MASK_TOPIC} frames in the bags under {bags}")
-    return instances, np.stack(videos)
+    episodes = [episodes[i] for i in select(count, len(episodes), seed)]
+    return [instance_of(msg) for _, msg, _ in episodes], np.stack([video_of(frames) for _, _, frames in episodes])
 
 
 def select(count: int, total: int, seed: int) -> np.ndarray:

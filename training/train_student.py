@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from training import data
 from training.engine import BEST, fit, init_runtime, load_checkpoint, main_first, seed_everything
-from training.models.common import align_loss, masked_regl1, uncertainty_nll
+from training.models.common import align_loss, task_loss
 from training.models.student import FRAME_COUNT, StudentConfig, build_student, student_preset
 from training.models.teacher import TEACHER_PRESETS
 from training.train_teacher import add_common_args, fit_config, load_teacher, teacher_targets
@@ -82,7 +82,7 @@ def videos_on_device(frames: list[np.ndarray], device: torch.device, progress: b
     """Every video of `frames` (per shard, as `resized_videos` gives them) in one tensor on `device`,
     rows in global video order. The paper split at 128x128 uint8 is 15 GB: fine on a data-centre GPU."""
     total = sum(len(f) for f in frames)
-    out = torch.empty((total, *frames[0].shape[1:]), dtype=torch.from_numpy(frames[0][:1]).dtype, device=device)
+    out = torch.empty((total, *frames[0].shape[1:]), dtype=torch.from_numpy(np.empty(0, frames[0].dtype)).dtype, device=device)
     row = 0
     for f in tqdm(frames, desc="videos to device", unit="bag", disable=not progress, leave=False):
         for start in range(0, len(f), 1024):  # bounded host memory per copy
@@ -98,18 +98,14 @@ def student_loss(ablation: str, alpha: float, align_weight: float = ALIGN_WEIGHT
 
     def loss_fn(model, batch, train: bool):
         out = model(batch["masks"], batch["valid"])
-        ce = torch.nn.functional.cross_entropy(out["logits"], batch["label"])
-        reg = masked_regl1(out["params"], batch["target"], batch["mask"])
-        nll = uncertainty_nll(out, batch["target"], batch["mask"])
-        logs = {"ce": ce.detach(), "regl1": reg.detach(), "score": (ce + reg).detach(),
-                "acc": (out["logits"].argmax(-1) == batch["label"]).float().mean()}
+        task, logs = task_loss(out, batch["label"], batch["target"], batch["mask"], regl1_weight, NLL_WEIGHT)
         if ablation == "none":
-            return CE_WEIGHT * ce + regl1_weight * reg + NLL_WEIGHT * nll, logs
+            return task, logs
         align = align_loss(out["z"], batch["z_t"], alpha)
         logs["align"] = align.detach()
         if ablation == "align_only":  # predictions come from the teacher's frozen predictor
             return align, logs
-        return align_weight * align + CE_WEIGHT * ce + regl1_weight * reg + NLL_WEIGHT * nll, logs
+        return align_weight * align + task, logs
 
     return loss_fn
 

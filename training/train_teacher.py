@@ -72,10 +72,7 @@ class TrajectorySet(TorchDataset):
 
 def teacher_loss(model, batch, train: bool):
     out = model(batch["trajectory"], batch["anchors"], batch["neighbours"])
-    loss, logs = task_loss(out, batch["label"], batch["target"], batch["mask"])
-    logs["acc"] = (out["logits"].argmax(-1) == batch["label"]).float().mean()
-    logs["score"] = logs["ce"] + logs["regl1"]
-    return loss, logs
+    return task_loss(out, batch["label"], batch["target"], batch["mask"])
 
 
 def load_teacher(path: str | Path, device="cpu") -> Teacher:
@@ -86,23 +83,23 @@ def load_teacher(path: str | Path, device="cpu") -> Teacher:
 
 
 @torch.no_grad()
-def teacher_targets(teacher: Teacher, ds: data.Dataset, device, batch_size: int = 16) -> np.ndarray:
-    """z_T of every instance (frozen teacher, eval mode, no augmentation): (N, z_dim) float32."""
-    out = []
+def _teacher_outputs(teacher: Teacher, ds: data.Dataset, device, batch_size: int):
+    """The frozen teacher's outputs (eval mode, no augmentation), a batch of instances at a time, in order."""
     for start in range(0, len(ds), batch_size):
         idx = range(start, min(len(ds), start + batch_size))
-        x = torch.from_numpy(np.stack([ds.trajectory(i) for i in idx])).to(device)
-        out.append(teacher(x)["z"].float().cpu().numpy())
+        yield teacher(torch.from_numpy(np.stack([ds.trajectory(i) for i in idx])).to(device))
+
+
+def teacher_targets(teacher: Teacher, ds: data.Dataset, device, batch_size: int = 16) -> np.ndarray:
+    """z_T of every instance: (N, z_dim) float32."""
+    out = [o["z"].float().cpu().numpy() for o in _teacher_outputs(teacher, ds, device, batch_size)]
     return np.concatenate(out) if out else np.zeros((0, teacher.config.z_dim), np.float32)
 
 
-@torch.no_grad()
 def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: int = 16) -> Predictions:
     """The teacher's estimates for every instance of ds, as metrics.Predictions (SI parameters)."""
     probs, params = [], []
-    for start in range(0, len(ds), batch_size):
-        idx = range(start, min(len(ds), start + batch_size))
-        out = teacher(torch.from_numpy(np.stack([ds.trajectory(i) for i in idx])).to(device))
+    for out in _teacher_outputs(teacher, ds, device, batch_size):
         probs.append(torch.softmax(out["logits"].float(), -1).cpu().numpy())
         params.append(out["params"].float().clamp(0, 1).cpu().numpy())
     normalised = np.concatenate(params)
@@ -133,7 +130,7 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
 def fit_config(args) -> FitConfig:
     return FitConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, weight_decay=args.weight_decay,
                      min_lr=args.min_lr, seed=args.seed, progress=not args.no_progress,
-                     stop_after=getattr(args, "stop_after", 0), amp=getattr(args, "amp", False))
+                     stop_after=args.stop_after, amp=args.amp)
 
 
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:

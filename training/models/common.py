@@ -119,7 +119,10 @@ def task_loss(out: dict, labels: torch.Tensor, target: torch.Tensor, mask: torch
     reg = masked_regl1(out["params"], target, mask)
     nll = uncertainty_nll(out, target, mask)
     loss = ce + regl1_weight * reg + nll_weight * nll
-    return loss, {"ce": ce.detach(), "regl1": reg.detach(), "nll": nll.detach()}
+    acc = (out["logits"].argmax(-1) == labels).float().mean()
+    # score (CE + RegL1) selects the best checkpoint
+    return loss, {"ce": ce.detach(), "regl1": reg.detach(), "nll": nll.detach(), "acc": acc,
+                  "score": (ce + reg).detach()}
 
 
 def align_loss(z_v: torch.Tensor, z_t: torch.Tensor, alpha: float) -> torch.Tensor:

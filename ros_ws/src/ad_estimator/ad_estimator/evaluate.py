@@ -18,14 +18,13 @@ import numpy as np
 from tqdm import tqdm
 
 from ad_estimator import metrics
-from ad_estimator.images import DEFAULT_THRESHOLD, image_to_mask
+from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns
 from ad_sim.rosbag import BagError, BagReader, group_episodes
 
 INSTANCE_TOPIC = "/ad_sim/instance"
 MASK_TOPIC = "/ad_sim/view_0/mask"
-MAX_IMAGE_PIXELS = 4096 * 4096
 
 
 @dataclass
@@ -73,13 +72,16 @@ def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC):
 
 
 def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed: int,
-                    slot_tolerance: float = DEFAULT_SLOT_TOLERANCE,
-                    threshold: int = DEFAULT_THRESHOLD) -> EpisodePrediction | None:
+                    slot_tolerance: float = DEFAULT_SLOT_TOLERANCE, threshold: int = DEFAULT_THRESHOLD,
+                    masks: list[np.ndarray] | None = None, encode=None) -> EpisodePrediction | None:
+    """The estimate from the episode's first `observed` frames. `masks` (the frames converted) and
+    `encode` (e.g. caching) let several prefixes of one episode share that work."""
     frames = frames[:observed]
     if not frames:
         return None
-    masks = [image_to_mask(image, MAX_IMAGE_PIXELS, threshold) for _, image in frames]
-    out = clip_output([s for s, _ in frames], masks, model.encode, model.info.frame_interval,
+    if masks is None:
+        masks = [image_to_mask(image, MAX_IMAGE_PIXELS, threshold) for _, image in frames]
+    out = clip_output([s for s, _ in frames], masks[:observed], encode or model.encode, model.info.frame_interval,
                       model.info.frame_count, slot_tolerance)
     estimate = model.predict(out.features, out.valid)
     return EpisodePrediction(
@@ -115,8 +117,17 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
     with tqdm(desc="episodes", unit="ep", disable=not progress, file=sys.stderr) as bar:
         for bag in bags:
             for instance, frames in episode_frames(bag, mask_topic):
+                # Every prefix length reuses the episode's conversions and frame encodings.
+                masks = [image_to_mask(image, MAX_IMAGE_PIXELS) for _, image in frames]
+                features: dict[int, np.ndarray] = {}
+
+                def encode(mask: np.ndarray) -> np.ndarray:
+                    if id(mask) not in features:
+                        features[id(mask)] = model.encode(mask)
+                    return features[id(mask)]
+
                 for k in frame_counts:
-                    prediction = predict_episode(model, bag, instance, frames, k)
+                    prediction = predict_episode(model, bag, instance, frames, k, masks=masks, encode=encode)
                     if prediction is not None:
                         results[k].append(prediction)
                 bar.update()

@@ -19,6 +19,7 @@ ENCODINGS = {
     "rgba8": (1, 4, 3), "bgra8": (1, 4, 3), "8UC4": (1, 4, 3),
 }
 DEFAULT_THRESHOLD = 127
+MAX_IMAGE_PIXELS = 4096 * 4096  # default bound; larger images are rejected from their header
 
 
 class ImageRejected(ValueError):

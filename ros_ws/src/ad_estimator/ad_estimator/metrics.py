@@ -22,7 +22,7 @@ from ad_sim.materials import FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAM
 TEMPORAL_OOD_FRAMES = (24, 22, 18, 15)
 
 # How each parameter's error is reported (SPEC 8): log-MAE (natural log), MAE, MAE in degrees.
-_ERROR_KIND = {
+ERROR_KIND = {
     "youngs_modulus": "log_mae",
     "poissons_ratio": "mae",
     "yield_stress": "log_mae",
@@ -91,10 +91,10 @@ def regl1(pred: Predictions) -> np.ndarray:
     return out
 
 
-def _parameter_error(name: str, pred: np.ndarray, true: np.ndarray) -> float:
+def parameter_error(name: str, pred: np.ndarray, true: np.ndarray) -> float:
     if len(true) == 0:
         return float("nan")
-    kind = _ERROR_KIND[name]
+    kind = ERROR_KIND[name]
     if kind == "log_mae":
         return float(np.mean(np.abs(np.log(np.clip(pred, 1e-12, None)) - np.log(true))))
     if kind == "mae_deg":
@@ -117,8 +117,8 @@ def compute_metrics(pred: Predictions) -> dict:
                  "correct": {}, "all": {}}
         for name in ranges[family]:
             j = PARAMETER_NAMES.index(name)
-            entry["correct"][name] = _parameter_error(name, pred.pred_params[correct, j], pred.true_params[correct, j])
-            entry["all"][name] = _parameter_error(name, pred.pred_params[rows, j], pred.true_params[rows, j])
+            entry["correct"][name] = parameter_error(name, pred.pred_params[correct, j], pred.true_params[correct, j])
+            entry["all"][name] = parameter_error(name, pred.pred_params[rows, j], pred.true_params[rows, j])
         families[family] = entry
     confusion = np.zeros((len(FAMILIES), len(FAMILIES)), dtype=np.int64)
     np.add.at(confusion, (pred.true_class, pred_class), 1)
@@ -222,7 +222,7 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
         if name == "friction_angle":
             lims = list(np.degrees(lims))
         ax.plot(lims, lims, "k--", lw=1)
-        if _ERROR_KIND[name] == "log_mae":
+        if ERROR_KIND[name] == "log_mae":
             ax.set_xscale("log")
             ax.set_yscale("log")
         ax.set_xlabel(f"true {_SHORT[name]}")

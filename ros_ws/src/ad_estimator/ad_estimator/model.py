@@ -255,7 +255,7 @@ class EstimatorModel:
             raise ValueError(f"features {features.shape} / valid {valid.shape} do not fit the model "
                              f"(up to {count} slots of {self.feature_shape})")
         padded = np.zeros((1, count, *self.feature_shape), np.float32)
-        padded[0, : len(features)] = features * valid.reshape(-1, *([1] * len(self.feature_shape)))
+        padded[0, : len(features)][valid] = features[valid]  # unobserved slots stay zero
         mask = np.zeros((1, count), np.float32)
         mask[0, : len(valid)] = valid
         name = "masks" if self._frame_session is None else "embeddings"

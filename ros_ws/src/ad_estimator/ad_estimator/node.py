@@ -35,7 +35,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
-from ad_estimator.images import DEFAULT_THRESHOLD, ImageRejected, check_header, image_to_mask
+from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
 from ad_estimator.window import (DEFAULT_GAP_THRESHOLD, DEFAULT_SLOT_TOLERANCE, FrameWindow, WindowOutput, clip_output,
                                  ns_to_stamp, stamp_to_ns)
@@ -59,7 +59,7 @@ PARAMETERS = {
     "output_policy": ("episode", "'episode': one estimate at the full frame count; 'anytime': every_n"),
     "every_n": (5, "anytime policy: an estimate every N more frames"),
     "min_frames": (10, "anytime policy: frames before the first estimate"),
-    "max_image_pixels": (4096 * 4096, "larger images are rejected from their header alone"),
+    "max_image_pixels": (MAX_IMAGE_PIXELS, "larger images are rejected from their header alone"),
     "mask_threshold": (DEFAULT_THRESHOLD, "pixel > threshold (of 255, scaled for 16 bit) is object"),
     "queue_size": (64, "frames waiting for the worker; more are dropped and counted"),
     "idle_flush": (0.3, "seconds without input after which pending slots settle (0: never)"),

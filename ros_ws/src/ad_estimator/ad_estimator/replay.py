@@ -68,8 +68,8 @@ def recorded_topics(reader: BagReader) -> dict[str, tuple[str, QoSProfile]]:
             meta = entry["topic_metadata"]
             result[meta["name"]] = (meta["type"], qos_from_recorded(meta.get("offered_qos_profiles") or []))
         return result
-    return {topic: (type_name, qos_from_recorded([dict(
-        DEFAULT_QOS, durability="transient_local" if topic in TRANSIENT_LOCAL_TOPICS else "volatile")]))
+    return {topic: (type_name, qos_from_recorded([
+        {"durability": "transient_local" if topic in TRANSIENT_LOCAL_TOPICS else "volatile"}]))
         for topic, type_name in reader.topics().items()}
 
 

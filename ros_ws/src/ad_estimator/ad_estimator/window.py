@@ -27,6 +27,7 @@ always one when the window is complete, and one on flush if slots were settled s
 """
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -70,9 +71,8 @@ class _Slot:
 @dataclass
 class WindowStats:
     frames: int = 0  # frames offered
-    encoded: int = 0  # frames that landed in a slot (and were encoded)
     ignored: int = 0  # duplicates, frames after the episode's end, frames between slots
-    restarts: dict[str, int] = field(default_factory=dict)
+    restarts: Counter = field(default_factory=Counter)  # by reason
 
 
 class FrameWindow:
@@ -109,17 +109,13 @@ class FrameWindow:
         self._done = False
 
     @property
-    def settled(self) -> int:
-        return self._settled
-
-    @property
     def active(self) -> bool:
         """An episode has started and its final estimate is not out yet."""
         return self._start_ns is not None and not self._done
 
     def _restart(self, reason: str) -> list[WindowOutput]:
         outputs = self.flush() if self._start_ns is not None else []
-        self.stats.restarts[reason] = self.stats.restarts.get(reason, 0) + 1
+        self.stats.restarts[reason] += 1
         self.reset()
         return outputs
 
@@ -132,7 +128,7 @@ class FrameWindow:
         self.stats.frames += 1
         outputs: list[WindowOutput] = []
         if self._start_ns is None:
-            self.stats.restarts[RESTART_FIRST] = self.stats.restarts.get(RESTART_FIRST, 0) + 1
+            self.stats.restarts[RESTART_FIRST] += 1
         elif size != self._size:
             outputs = self._restart(RESTART_SIZE)
         elif stamp_ns < self._last_ns:
@@ -165,7 +161,6 @@ class FrameWindow:
             if slot is None or error < slot.error_ns:
                 if feature is None:
                     feature = encode()
-                    self.stats.encoded += 1
                 self._slots[k] = _Slot(stamp_ns, error, feature)
         if feature is None:
             self.stats.ignored += 1
@@ -234,7 +229,6 @@ def clip_stamps(stamps_ns: list[int], frame_interval: float) -> list[int]:
     if any(b <= a for a, b in zip(stamps_ns, stamps_ns[1:])):
         raise ValueError("clip stamps must be strictly increasing (or all equal for frames on the model's interval)")
     return list(stamps_ns)
-
 
 
 def clip_output(stamps_ns: list[int], masks: list[np.ndarray], encode: Callable[[np.ndarray], np.ndarray],

@@ -30,7 +30,7 @@ BENCHMARK_SPLITS = ("train", "seen", "unseen")
 SCALE = 0.4
 PARTICLE_SPACING = 0.5 * mpm.DX
 # Ground and walls: the solver's boundary layer is BOUNDARY_CELLS grid cells thick on every side.
-BOUNDARY = mpm.BOUNDARY_CELLS * mpm.DX
+BOUNDARY = mpm.GROUND_Z
 WALL_MARGIN = 0.02  # keep the object this far from the walls at t = 0
 DROP_GAP = (0.05, 0.25)  # object's lowest point above the ground at t = 0 (less if the ceiling is near)
 XY_JITTER = 0.1  # centre of the object within +-XY_JITTER of the domain's middle
@@ -41,7 +41,6 @@ TRAIN_VIEWS = 4
 EVALUATION_VIEWS = 1
 
 _SPLIT_CODES = {name: code for code, name in enumerate(SPLITS)}
-_FAMILY_CODES = {name: code for code, name in enumerate(materials.FAMILIES)}
 _PARAMETER_STREAM = 1  # second PCG64 stream of a seed, for benchmark parameters
 
 
@@ -169,7 +168,7 @@ BENCHMARK_SIZES = {
 
 def instance_seed(split: str, shape: str, family: str, index: int, base_seed: int = 0) -> int:
     """Stable 63-bit seed of benchmark instance `index` of (split, shape, family)."""
-    entropy = [base_seed, _SPLIT_CODES[split], zlib.crc32(shape.encode()), _FAMILY_CODES[family], index]
+    entropy = [base_seed, _SPLIT_CODES[split], zlib.crc32(shape.encode()), materials.FAMILY_CODES[family], index]
     low, high = np.random.SeedSequence(entropy).generate_state(2, dtype=np.uint32)
     return (int(high) << 32 | int(low)) & (2**63 - 1)
 

@@ -193,6 +193,13 @@ def stencil_node(w: wp.mat33, fx: wp.vec3, i: int, j: int, k: int):
     return weight, (wp.vec3(float(i), float(j), float(k)) - fx) * _DX
 
 
+@wp.func
+def mls_affine(dt: float, volume: float, stress: wp.mat33, m: float, C: wp.mat33):
+    """The particle's affine momentum term. MLS-MPM: the stress force enters as an affine term,
+    M_p^-1 = 4 / dx^2 for quadratic splines; APIC adds m C."""
+    return (-dt * volume * 4.0 * _INV_DX * _INV_DX) * stress + m * C
+
+
 @wp.kernel
 def p2g(
     iteration: int,
@@ -213,8 +220,7 @@ def p2g(
     if iteration >= substeps[s]:
         return
     m = mass[s]
-    # MLS-MPM: the stress force enters as an affine term, M_p^-1 = 4 / dx^2 for quadratic splines.
-    affine = (-dt[s] * volume[s] * 4.0 * _INV_DX * _INV_DX) * stress[p] + m * C[p]
+    affine = mls_affine(dt[s], volume[s], stress[p], m, C[p])
     mv = m * v[p]
     base, fx, w = stencil(x[p])
     for i in range(3):
@@ -253,7 +259,7 @@ def p2g_tiled(
     s = scene[p]
     active = first + lane < total and iteration < substeps[s]
     m = mass[s]
-    affine = (-dt[s] * volume[s] * 4.0 * _INV_DX * _INV_DX) * stress[p] + m * C[p]
+    affine = mls_affine(dt[s], volume[s], stress[p], m, C[p])
     mv = m * v[p]
     base, fx, w = stencil(x[p])
     # Patch origin: smallest stencil base over the block's particles of scene s0.

@@ -107,7 +107,9 @@ class RecordNode(Node):
                 self.get_logger().error(f"cannot record {topic} [{types[0]}]: {exc}")
 
     def _subscribe(self, topic: str, type_name: str, publishers) -> None:
+        # Both can fail (no definition or typesupport here): before the topic enters the bag.
         schema = load_schema(type_name)
+        message_class = import_message_class(type_name)
         use_header = self.stamp_source == "header" and starts_with_header(schema.definition)
         # Like rosbag2: offer what every publisher can match, with a history that never drops.
         reliable = all(info.qos_profile.reliability == ReliabilityPolicy.RELIABLE for info in publishers)
@@ -133,7 +135,7 @@ class RecordNode(Node):
             self._unflushed = True
 
         self.subscriptions_by_topic[topic] = self.create_subscription(
-            import_message_class(type_name), topic, on_message, qos, raw=True
+            message_class, topic, on_message, qos, raw=True
         )
         self.get_logger().info(f"subscribed to {topic} [{type_name}]")
 

@@ -173,12 +173,11 @@ def farthest_point_sampling_batch(
     if sizes.min() < count:
         raise ValueError(f"farthest point sampling needs at least {count} points, got {int(sizes.min())}")
     offsets = np.concatenate([[0], np.cumsum(sizes)])
-    first = np.stack([np.asarray(starts, dtype=np.int64) + offsets[:-1], np.zeros(len(sizes), np.int64)], axis=1)
     with wp.ScopedDevice(device):
         points = wp.array(np.concatenate(point_sets).astype(np.float32), dtype=wp.vec3)
         set_of = wp.array(np.repeat(np.arange(len(sizes)), sizes).astype(np.int32), dtype=wp.int32)
         initial = np.zeros((len(sizes), count), dtype=np.int32)
-        initial[:, 0] = first[:, 0]
+        initial[:, 0] = np.asarray(starts, dtype=np.int64) + offsets[:-1]
         chosen = wp.array(initial, dtype=wp.int32)
         distance = wp.array(np.full(int(offsets[-1]), np.inf, dtype=np.float32), dtype=wp.float32)
         best = wp.array(np.full(len(sizes), -1.0, dtype=np.float32), dtype=wp.float32)

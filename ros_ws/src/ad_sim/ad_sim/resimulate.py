@@ -22,7 +22,7 @@ import numpy as np
 from .episode import simulate_batch
 from .instances import Instance
 from .materials import FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS, full_parameters
-from .render import DOWNSAMPLE, FULL_SIZE
+from .render import MASK_SIZE
 
 #: PSNR (dB) of two identical mask videos.
 PSNR_CAP = 100.0
@@ -75,8 +75,7 @@ def resimulate(
     if view < 0:
         raise ValueError(f"view must be >= 0, got {view}")
     if not instances:
-        size = FULL_SIZE // DOWNSAMPLE
-        return np.zeros((0, frame_count, size, size), dtype=np.uint8)
+        return np.zeros((0, frame_count, MASK_SIZE, MASK_SIZE), dtype=np.uint8)
     copies = [with_material(inst, family, params) for inst, (family, params) in zip(instances, candidates)]
     # The first k cameras of an instance do not depend on how many are asked for.
     episodes = simulate_batch(copies, device=device, views=view + 1, frame_count=frame_count, progress=progress)

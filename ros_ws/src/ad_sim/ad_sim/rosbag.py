@@ -319,10 +319,6 @@ class BagWriter:
     def message_count(self) -> int:
         return sum(t.message_count for t in self._topics.values())
 
-    @property
-    def topic_counts(self) -> dict[str, int]:
-        return {name: t.message_count for name, t in self._topics.items()}
-
     def has_topic(self, topic: str) -> bool:
         return topic in self._topics
 
@@ -487,6 +483,7 @@ class _FileScan:
     path: Path
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
+    decoders: dict[int, Any] = field(default_factory=dict)  # by channel id, built on first use
 
 
 _RECORD_TYPES = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel}
@@ -533,7 +530,6 @@ class BagReader:
         self.topic_filter = None if topics is None else set(topics)
         self.metadata: dict | None = None
         self.files = self._find_files()
-        self._decoders: dict[tuple[int, int], Any] = {}
         self._decoder_factory = DecoderFactory()
 
     def _find_files(self) -> list[Path]:
@@ -601,8 +597,7 @@ class BagReader:
             yield log_time, (file_index, order), channel.topic, message
 
     def _decode(self, scan: _FileScan, channel: Channel, data: bytes) -> Any:
-        key = (id(scan), channel.id)
-        decoder = self._decoders.get(key)
+        decoder = scan.decoders.get(channel.id)
         if decoder is None:
             schema = scan.schemas.get(channel.schema_id)
             if schema is None:
@@ -616,7 +611,7 @@ class BagReader:
                 decoder = self._decoder_factory.decoder_for(channel.message_encoding, schema)
             except Exception as exc:  # mcap_ros2 raises assorted parse errors
                 raise BagError(f"{scan.path}: cannot parse the schema {schema.name} of topic {channel.topic}: {exc}") from exc
-            self._decoders[key] = decoder
+            scan.decoders[channel.id] = decoder
         try:
             return decoder(data)
         except Exception as exc:
