@@ -25,7 +25,7 @@ def _cache_run(args) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from training import baseline, evaluate, export, pipeline, resim_psnr, train_student, train_teacher
+    from training import baseline, engine, evaluate, export, pipeline, resim_psnr, train_student, train_teacher
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     parser = argparse.ArgumentParser(prog="python -m training", description=__doc__)
@@ -43,7 +43,10 @@ def main(argv: list[str] | None = None) -> int:
     for name, (build, _, help_text) in commands.items():
         build(sub.add_parser(name, help=help_text, formatter_class=argparse.ArgumentDefaultsHelpFormatter))
     args = parser.parse_args(argv)
-    commands[args.command][1](args)
+    try:
+        commands[args.command][1](args)
+    finally:
+        engine.close_runtime()
     return 0
 
 

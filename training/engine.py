@@ -59,6 +59,13 @@ def init_runtime(device: str = "auto") -> Runtime:
     return Runtime(0, 1, torch.device(device))
 
 
+def close_runtime() -> None:
+    """Ends the process group, if any. Without it a rank can abort at exit while gloo's threads
+    are still alive ("terminate called without an active exception")."""
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
+
+
 def main_first(rt: Runtime, work: Callable):
     """Runs `work` on rank 0 first (e.g. filling a cache), then on the other ranks."""
     if rt.main:
