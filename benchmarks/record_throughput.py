@@ -41,7 +41,8 @@ def main() -> None:
     from rclpy.node import Node
     from tqdm import tqdm
 
-    from ad_sim.sim_node import SimPublishers, to_ros_message, use_fast_heartbeat
+    from ad_sim.dds import use_fast_heartbeat
+    from ad_sim.sim_node import SimPublishers, to_ros_message
 
     if not args.slow_heartbeat:
         use_fast_heartbeat()  # as the simulator node does

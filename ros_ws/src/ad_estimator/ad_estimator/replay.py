@@ -23,6 +23,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.utilities import remove_ros_args
 from tqdm import tqdm
 
+from ad_sim.dds import use_fast_heartbeat
 from ad_sim.rosbag import BagError, BagReader
 
 # Used when a bag has no metadata.yaml (a lone .mcap): what the simulator offers.
@@ -147,6 +148,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 def main(args=None) -> int:
     argv = sys.argv if args is None else args
     options = parse_args(remove_ros_args(argv)[1:])
+    use_fast_heartbeat()  # acknowledgements (and the wait for them at the end) in ms, not at 3 s heartbeats
     rclpy.init(args=argv)
     node = None
     try:

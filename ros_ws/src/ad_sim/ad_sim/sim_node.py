@@ -22,12 +22,10 @@ from __future__ import annotations
 import array
 import importlib
 import math
-import os
 import queue
 import signal
 import threading
 import time
-from pathlib import Path
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
@@ -39,18 +37,11 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from . import materials, messages
+from .dds import use_fast_heartbeat
 
-FAST_HEARTBEAT_PROFILE = Path(__file__).resolve().parent / "data" / "dds" / "fast_heartbeat.xml"
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
-
-
-def use_fast_heartbeat() -> None:
-    """Before rclpy.init: on Fast DDS (the default RMW), make reliable writers heartbeat every 20 ms."""
-    if os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"):
-        if not os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE") and not os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE"):
-            os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(FAST_HEARTBEAT_PROFILE)
 
 
 def import_message_class(type_name: str):
