@@ -86,7 +86,7 @@ def videos_on_device(frames: list[np.ndarray], device: torch.device, progress: b
     row = 0
     for f in tqdm(frames, desc="videos to device", unit="bag", disable=not progress, leave=False):
         for start in range(0, len(f), 1024):  # bounded host memory per copy
-            chunk = np.ascontiguousarray(f[start:start + 1024])
+            chunk = np.array(f[start:start + 1024])  # a writable copy: torch warns on read-only memmaps
             out[row:row + len(chunk)] = torch.from_numpy(chunk).to(device)
             row += len(chunk)
     return out
