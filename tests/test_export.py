@@ -74,6 +74,6 @@ def test_estimator_wrapper_runs_the_export_like_torch(tmp_path, kind):
         with torch.no_grad():
             ref = model(x, valid)
         np.testing.assert_allclose(est.probabilities, torch.softmax(ref["logits"][0], -1).numpy(), atol=1e-4)
-        expected = [denormalise(n, float(np.clip(ref["params"][0, i], 0, 1))) for i, n in enumerate(PARAMETER_NAMES)]
+        expected = [denormalise(n, float(ref["params"][0, i].clamp(0, 1))) for i, n in enumerate(PARAMETER_NAMES)]
         np.testing.assert_allclose(est.raw_parameters, expected, rtol=1e-3)
         assert est.frames_used == k
