@@ -4,12 +4,30 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ad_sim.materials import FAMILIES, FAMILY_RANGES, PARAMETER_NAMES, SAMPLED_PARAMETERS, normalise
+
 NUM_CLASSES = 3
 NUM_PARAMS = 4
+
+
+def family_scales() -> np.ndarray:
+    """(families, parameters) factors from the heads' parameter space (normalised over the union
+    ranges, one head for all families) to each family's own normalised range, in which SPEC 8
+    defines RegL1: plasticine's E and nu span half the union range, so their errors count double."""
+    out = np.ones((len(FAMILIES), len(PARAMETER_NAMES)), np.float32)
+    for f, family in enumerate(FAMILIES):
+        for name in SAMPLED_PARAMETERS[family]:
+            lo, hi, _ = FAMILY_RANGES[family][name]
+            out[f, PARAMETER_NAMES.index(name)] = 1.0 / (normalise(name, hi) - normalise(name, lo))
+    return out
+
+
+FAMILY_SCALES = torch.from_numpy(family_scales())
 
 
 class Attention(nn.Module):
@@ -99,9 +117,12 @@ class Heads(nn.Module):
         return self.predictor(self.projector(pooled))
 
 
-def masked_regl1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean |pred - target| over each sample's valid (sampled) parameters, then over the batch."""
-    per = (torch.abs(pred - target) * mask).sum(1) / mask.sum(1).clamp(min=1.0)
+def masked_regl1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """SPEC 8's RegL1: mean |pred - target| over each sample's valid (sampled) parameters, measured
+    in its true family's own normalised ranges (pred and target are in the heads' union-normalised
+    space), then over the batch. The same figure as ad_estimator.metrics.regl1."""
+    scale = FAMILY_SCALES.to(pred.device)[labels]
+    per = (torch.abs(pred - target) * scale * mask).sum(1) / mask.sum(1).clamp(min=1.0)
     return per.mean()
 
 
@@ -116,7 +137,7 @@ def uncertainty_nll(out: dict, target: torch.Tensor, mask: torch.Tensor) -> torc
 def task_loss(out: dict, labels: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
               regl1_weight: float = 1.0, nll_weight: float = 0.05) -> tuple[torch.Tensor, dict]:
     ce = F.cross_entropy(out["logits"], labels)
-    reg = masked_regl1(out["params"], target, mask)
+    reg = masked_regl1(out["params"], target, mask, labels)
     nll = uncertainty_nll(out, target, mask)
     loss = ce + regl1_weight * reg + nll_weight * nll
     acc = (out["logits"].argmax(-1) == labels).float().mean()
