@@ -11,4 +11,6 @@ fi
 if [ -n "${ZSH_VERSION:-}" ]; then . "$_ad_root/ros_ws/install/setup.zsh"; else . "$_ad_root/ros_ws/install/setup.bash"; fi
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
 export AD_ROOT="$_ad_root"
+# `python -m training` (the training package at the repository root) from any directory.
+case ":${PYTHONPATH:-}:" in *":$_ad_root:"*) ;; *) export PYTHONPATH="$_ad_root${PYTHONPATH:+:$PYTHONPATH}" ;; esac
 unset _ad_root

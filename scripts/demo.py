@@ -140,7 +140,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randrange(1, 100)))
     args.logs.mkdir(parents=True, exist_ok=True)
@@ -149,7 +149,14 @@ def main(argv=None) -> int:
     listener = Listener(node)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+
+    def spin() -> None:
+        try:
+            executor.spin()
+        except ExternalShutdownException:  # Ctrl-C: rclpy's signal handler shut the context down first
+            pass
+
+    spinner = threading.Thread(target=spin, daemon=True)
     spinner.start()
 
     model_args = ["--ros-args", "-p", f"model_path:={args.model}"] if args.model else []
@@ -188,6 +195,7 @@ def main(argv=None) -> int:
         print(f"demo: {exc}", file=sys.stderr)
         status = 1
     except KeyboardInterrupt:
+        print(f"demo: interrupted after {len(listener.rows)} estimates; nodes stopped", file=sys.stderr)
         status = 130
     finally:
         for proc in (simulator, estimator):

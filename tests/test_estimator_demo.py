@@ -1,7 +1,9 @@
 """The README's main job (scripts/demo.py): real simulator node -> estimator node, estimates beside ground truth."""
 import re
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -26,3 +28,24 @@ def test_demo_prints_estimates_beside_ground_truth(tmp_path, ros_domain_id):
         assert name.split()[0].split("-")[-2] == truth.split()[0]  # the episode's material, as ground truth
         assert re.search(r"^(jelly|plasticine|sand) +\(p=[01]\.\d\d\) .*\[25 frames, [\d.]+ ms\]$", estimate)
     assert "accuracy" in result.stdout
+
+
+def test_ctrl_c_stops_the_demo_and_its_nodes_cleanly(tmp_path, ros_domain_id):
+    model = build_streaming_model(tmp_path)
+    demo = subprocess.Popen(
+        [sys.executable, str(REPO / "scripts" / "demo.py"), "--episodes", "50", "--model", str(model),
+         "--logs", str(tmp_path / "logs"), "--timeout", "240"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in demo.stdout:  # the simulator is starting: both nodes are up
+            if line.startswith("estimator up"):
+                break
+        time.sleep(1.0)
+        demo.send_signal(signal.SIGINT)
+        _, err = demo.communicate(timeout=60)
+    finally:
+        demo.kill()
+    assert demo.returncode == 130, err
+    assert "Traceback" not in err and "demo: interrupted" in err, err
+    leftovers = subprocess.run(["pgrep", "-f", str(model)], capture_output=True, text=True).stdout.split()
+    assert leftovers == [], f"estimator node still running: {leftovers}"

@@ -3,6 +3,7 @@ evaluated ONNX model and re-running it resumes instead of redoing."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -10,6 +11,7 @@ from ad_estimator.model import EstimatorModel
 from training.__main__ import main
 from training.synthetic import write_synthetic_bag
 
+REPO = Path(__file__).resolve().parents[1]
 COMMANDS = ("cache", "teacher", "student", "export", "evaluate", "pipeline")
 
 
@@ -63,3 +65,26 @@ def test_evaluate_rejects_bad_prefix_lengths(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["evaluate", "--model", "m.onnx", "--bags", "b", "--frames", "0,30"])
     assert exit_info.value.code == 2 and "prefix lengths must lie in 1..25" in capsys.readouterr().err
+
+
+def test_user_errors_are_one_line_without_traceback(tmp_path, capsys, monkeypatch):
+    """Missing model, missing bags, masks-only bags (no particles), missing teacher: exit 1 and one
+    line that says what is wrong and what to do; AD_DEBUG=1 re-raises for developers."""
+    monkeypatch.delenv("AD_DEBUG", raising=False)
+    masks_only = REPO / "bags" / "samples" / "unseen-masks-0of1"
+    model = REPO / "ros_ws" / "src" / "ad_estimator" / "ad_estimator" / "models" / "default.onnx"
+    cases = [
+        (["evaluate", "--model", str(tmp_path / "missing.onnx"), "--bags", str(masks_only)], "model file not found"),
+        (["cache", "--bags", str(tmp_path / "nothing"), "--cache", str(tmp_path / "c")], "no .mcap bags under"),
+        (["evaluate", "--model", str(model), "--bags", str(masks_only), "--cache", str(tmp_path / "c"),
+          "--no-progress"], "--skip-particles"),
+        (["export", "--checkpoint", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "m.onnx")], "missing.pt"),
+    ]
+    for argv, expected in cases:
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and expected in err.splitlines()[-1], (argv, err)
+        assert err.splitlines()[-1].startswith(f"python -m training {argv[0]}: ")
+    monkeypatch.setenv("AD_DEBUG", "1")
+    with pytest.raises(FileNotFoundError):
+        main(cases[1][0])

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 
 
@@ -45,6 +46,17 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         commands[args.command][1](args)
+    except (ValueError, FileNotFoundError) as exc:
+        # What a user can fix (bad paths, flags, models, bags; ModelError and BagError are
+        # ValueErrors): one line. AD_DEBUG=1 keeps the traceback for developers.
+        if os.environ.get("AD_DEBUG"):
+            raise
+        print(f"python -m training {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"python -m training {args.command}: interrupted (training runs resume from last.pt when run "
+              "again)", file=sys.stderr)
+        return 130
     finally:
         engine.close_runtime()
     return 0

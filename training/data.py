@@ -58,7 +58,7 @@ def find_bags(root: str | Path) -> list[Path]:
     bags = sorted({p.parent for p in root.rglob("*.mcap")})
     if not bags:
         raise FileNotFoundError(f"no .mcap bags under {root}; generate some with "
-                                f"`python -m ad_sim.generate --size tiny --split train --out {root}`")
+                                f"`python -m ad_sim.generate --size tiny --split <train|seen|unseen> --out {root}`")
     return bags
 
 
@@ -257,7 +257,10 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True)
             _write_shard(folder, episodes)
         shards.append(folder)
     if not shards:
-        raise RuntimeError(f"no complete episodes in the bags under {bags}")
+        raise ValueError(f"no complete episodes in the bags under {bags}: training and `python -m training` "
+                         f"evaluation need all {FRAME_COUNT} frames of a mask view and of the tracked particles "
+                         f"({particles_topic()}), which bags generated with --skip-particles lack (evaluate those "
+                         f"with `ros2 run ad_estimator evaluate`)")
     return Dataset(shards)
 
 

@@ -41,7 +41,7 @@ def init_runtime(device: str = "auto") -> Runtime:
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise RuntimeError("--device cuda asked for, but torch sees no GPU; use --device cpu")
+        raise ValueError("--device cuda asked for, but torch sees no GPU; use --device cpu")
     if world > 1:
         local = int(os.environ.get("LOCAL_RANK", "0"))
         if device.startswith("cuda"):
