@@ -113,6 +113,17 @@ def test_report_files_and_table(tmp_path):
     assert evaluate_all(by_frames)["25"]["n"] == 12
 
 
+def test_report_json_is_strict_with_null_where_no_clip_qualified(tmp_path):
+    """No sand clip classified as sand: its phi error is undefined. The JSON says null (not NaN,
+    which jq, browsers and strict parsers reject) and the table says n/a."""
+    true = np.array([JELLY, SAND])
+    results = write_report({25: Predictions(np.array([0, 2]), true, _onehot([0, 0]), _fill(true))}, tmp_path, "t")
+    text = (tmp_path / "metrics.json").read_text()
+    saved = json.loads(text, parse_constant=lambda name: pytest.fail(f"non-standard JSON constant {name}"))
+    assert saved["frames"]["25"]["families"]["sand"]["correct"]["friction_angle"] is None
+    assert "n/a" in format_table(results)
+
+
 def test_metrics_module_never_imports_torch():
     code = "import sys, ad_estimator.metrics; sys.exit(1 if 'torch' in sys.modules else 0)"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}

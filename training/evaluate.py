@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ad_estimator.metrics import TEMPORAL_OOD_FRAMES, Predictions, format_table, write_report
+from ad_estimator.metrics import TEMPORAL_OOD_FRAMES, Predictions, format_table, json_text, write_report
 from ad_estimator.model import EstimatorModel
 from ad_sim.materials import FRAME_COUNT
 from training import data
@@ -105,7 +105,7 @@ def update_model_metrics(model_path: str | Path, update: dict) -> Path:
             current[key].update(value)
         else:
             current[key] = value
-    path.write_text(json.dumps(current, indent=2))
+    path.write_text(json_text(current))
     return path
 
 

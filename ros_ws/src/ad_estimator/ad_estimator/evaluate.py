@@ -9,7 +9,6 @@ out-of-distribution rows (only the first K frames observed). Needs no ROS runtim
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -174,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     title = args.title or f"{model.model_id} on {', '.join(str(b) for b in args.bags)}"
     by_frames = {k: to_metrics(v, model.info.parameter_names) for k, v in results.items() if v}
     report = metrics.write_report(by_frames, out, title)
-    (out / "predictions.json").write_text(json.dumps(
+    (out / "predictions.json").write_text(metrics.json_text(
         {"model_id": model.model_id, "model_path": str(args.model), "topic": args.topic,
          "frames": {str(k): [vars(p) for p in v] for k, v in results.items()}}, indent=1))
     print(metrics.format_table(report, title))

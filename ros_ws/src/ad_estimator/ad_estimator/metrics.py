@@ -146,6 +146,21 @@ def _columns() -> list[tuple[str, str, str | None]]:
     return cols
 
 
+def json_text(obj, indent: int = 2) -> str:
+    """Strict JSON (what jq and browsers read): NaN, meaning "no clip qualified", becomes null."""
+
+    def clean(value):
+        if isinstance(value, float) and math.isnan(value):
+            return None
+        if isinstance(value, dict):
+            return {k: clean(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [clean(v) for v in value]
+        return value
+
+    return json.dumps(clean(obj), indent=indent, allow_nan=False)
+
+
 def _cell(value: float) -> str:
     """A table cell; n/a where no clip qualified (e.g. no correctly classified clip of a family)."""
     return "n/a" if math.isnan(value) else f"{value:.3f}"
@@ -198,7 +213,7 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
     results = evaluate_all(by_frames)
     full_k = max(by_frames)
     full = by_frames[full_k]
-    (out / "metrics.json").write_text(json.dumps({"title": title, "frames": results}, indent=2))
+    (out / "metrics.json").write_text(json_text({"title": title, "frames": results}))
 
     fig, ax = plt.subplots(figsize=(4, 4))
     _plot_confusion(ax, np.asarray(results[str(full_k)]["confusion"]))
