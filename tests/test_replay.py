@@ -80,6 +80,8 @@ def test_replay_corrupt_bag_is_a_clear_error(tmp_path, content, ros_domain_id):
     proc = run("ad_estimator.replay", str(bag), "--quiet", "--delay", "0")
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 1 and "bad_0.mcap" in out and "Traceback" not in out, out
+    if content == b"garbage":
+        assert "is not an MCAP file" in out, out
 
 
 def test_replay_missing_bag(tmp_path, ros_domain_id):

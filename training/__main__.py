@@ -25,6 +25,16 @@ def _cache_run(args) -> None:
     print(f"{len(ds)} instances {counts}, {ds.num_videos} videos, {len(ds.shards)} bags cached in {args.cache}")
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Appends "(default: X)" only where there is a default to show and the help text does not
+    already explain it."""
+
+    def _get_help_string(self, action):
+        if action.default in (None, False) or "default" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
 def main(argv: list[str] | None = None) -> int:
     from training import baseline, engine, evaluate, export, pipeline, resim_psnr, train_student, train_teacher
 
@@ -42,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         "resim-psnr": (resim_psnr.build_parser, resim_psnr.run, "re-simulation PSNR of a student's estimates on bags"),
     }
     for name, (build, _, help_text) in commands.items():
-        build(sub.add_parser(name, help=help_text, formatter_class=argparse.ArgumentDefaultsHelpFormatter))
+        build(sub.add_parser(name, help=help_text, formatter_class=_HelpFormatter))
     args = parser.parse_args(argv)
     try:
         commands[args.command][1](args)

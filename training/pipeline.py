@@ -60,8 +60,9 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--kind", choices=["streaming", "uniformer"], default="streaming", help="student encoder")
     p.add_argument("--ablations", default="full",
                    help=f"comma-separated student ablations to train, from {','.join(ABLATIONS)}")
-    p.add_argument("--teacher-epochs", type=int, help="default per size: " + str({k: v[0] for k, v in EPOCHS.items()}))
-    p.add_argument("--student-epochs", type=int, help="default per size: " + str({k: v[1] for k, v in EPOCHS.items()}))
+    for i, stage in enumerate(("teacher", "student")):
+        per_size = ", ".join(f"{epochs[i]} for {size}" for size, epochs in EPOCHS.items())
+        p.add_argument(f"--{stage}-epochs", type=int, help=f"{stage} epochs (default: {per_size})")
     p.add_argument("--val-fraction", type=float, default=0.1)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto", help="auto | cpu | cuda")

@@ -116,7 +116,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=Path("bags"), help="output folder for the shard bag folders (default %(default)s)")
     parser.add_argument("--device", default="cpu", help="Warp device: cpu, cuda or cuda:<n> (default %(default)s)")
     parser.add_argument("--views", type=int, help="cameras per episode (default: 4 for train, 1 otherwise)")
-    parser.add_argument("--batch", type=int, help=f"episodes per simulator batch (default {DEFAULT_BATCH})")
+    parser.add_argument("--batch", type=int, help="episodes per simulator batch (default: " + ", ".join(f"{n} on {d}" for d, n in DEFAULT_BATCH.items()) + ")")
     parser.add_argument("--limit", type=int, help="use only the first n instances (quick looks)")
     parser.add_argument("--max-bag-size", type=int, default=0, help="split .mcap files at this many bytes (0: never)")
     parser.add_argument("--compression", default="zstd", choices=("zstd", "lz4", "none"), help="chunk compression (default %(default)s)")

@@ -625,7 +625,10 @@ class BagReader:
     def _read_summary(self, scan: _FileScan, data) -> list[ChunkIndex] | None:
         """Chunk indexes (and the schemas and channels into `scan`) from the file's summary.
 
-        None if the file has no footer (a killed writer: an error unless recovering) or no summary."""
+        A file that does not start with the MCAP magic is an error even when recovering. None if the
+        file has no footer (a killed writer: an error unless recovering) or no summary."""
+        if data[:MAGIC_SIZE] != MCAP_MAGIC:
+            raise BagError(f"{scan.path} is not an MCAP file (starts with {bytes(data[:MAGIC_SIZE])!r})")
         size = len(data)
         footer_at = size - MAGIC_SIZE - _FOOTER_RECORD_SIZE
         if size < 2 * MAGIC_SIZE + _FOOTER_RECORD_SIZE or data[-MAGIC_SIZE:] != MCAP_MAGIC or data[footer_at] != Opcode.FOOTER:
@@ -654,8 +657,6 @@ class BagReader:
     def _scan_file(self, scan: _FileScan) -> Iterator[tuple[int, int, Channel, bytes]]:
         """Messages of one file as (log_time, order, channel, data), in log-time order."""
         with _mapped(scan.path) as data:
-            if data[:MAGIC_SIZE] != MCAP_MAGIC:
-                raise BagError(f"{scan.path} is not an MCAP file (starts with {bytes(data[:MAGIC_SIZE])!r})")
             chunk_indexes = self._read_summary(scan, data)
             # chunk offset -> earliest log time in that and every later chunk: once past a chunk,
             # messages before the next chunk's value can be released in order.
