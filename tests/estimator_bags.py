@@ -31,10 +31,10 @@ def instance_dict(index: int, material: str, parameters: dict, stamp_ns: int) ->
     }
 
 
-def write_test_bag(path: Path, episodes=EPISODES) -> Path:
+def write_test_bag(path: Path, episodes=EPISODES, chunk_size: int = 1024 * 1024) -> Path:
     """One view, falling-disc masks at the simulator's stamps, ground truth per episode."""
     instance_topic, mask_topic = messages.instance_topic(), messages.mask_topic(0)
-    with BagWriter(path) as writer:
+    with BagWriter(path, chunk_size=chunk_size) as writer:
         writer.add_topic(instance_topic, messages.INSTANCE_TYPE, [qos_profile(**messages.topic_qos(instance_topic))])
         writer.add_topic(mask_topic, messages.IMAGE_TYPE, [qos_profile(**messages.topic_qos(mask_topic))])
         for index, (material, parameters) in enumerate(episodes):

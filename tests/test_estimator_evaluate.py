@@ -1,8 +1,10 @@
 """`ad_estimator evaluate`: offline metrics over bags (no ROS runtime)."""
 import json
+import warnings
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 from ad_estimator import evaluate
 from ad_estimator.model import EstimatorModel
@@ -50,3 +52,23 @@ def test_clear_errors(setup, tmp_path, capsys):
     assert "nowhere" in capsys.readouterr().err
     assert evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", "30"]) == 1
     assert "1..25" in capsys.readouterr().err
+
+
+def test_truncated_recording_needs_recover_and_then_gives_its_complete_episodes(setup, tmp_path, capsys):
+    """A killed recorder leaves a file without a footer: evaluate says so and names --recover;
+    with it, the episodes in complete chunks are scored, with a one-line warning."""
+    model, _ = setup
+    bag = write_test_bag(tmp_path / "killed", chunk_size=20_000)
+    (file,) = bag.glob("*.mcap")
+    with open(file, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    cut = chunks[len(chunks) // 2]  # killed while writing the middle chunk (the second episode)
+    file.write_bytes(file.read_bytes()[: cut.chunk_start_offset + cut.chunk_length // 2])
+    assert evaluate.main(["--model", str(model), "--bags", str(bag), "--quiet", "--out", str(tmp_path / "a")]) == 1
+    assert "truncated" in (err := capsys.readouterr().err) and "--recover" in err, err
+    with pytest.warns(UserWarning, match="truncated"):
+        assert evaluate.main(["--model", str(model), "--bags", str(bag), "--quiet", "--recover",
+                              "--out", str(tmp_path / "b")]) == 0
+    assert warnings.formatwarning("x is truncated", UserWarning, "rosbag.py", 1) == "warning: x is truncated\n"
+    scored = json.loads((tmp_path / "b" / "predictions.json").read_text())["frames"]["25"]
+    assert 1 <= len(scored) < len(EPISODES)

@@ -84,6 +84,22 @@ def test_replay_corrupt_bag_is_a_clear_error(tmp_path, content, ros_domain_id):
         assert "is not an MCAP file" in out, out
 
 
+def test_replay_truncated_recording_with_recover(tmp_path, ros_domain_id):
+    """A killed recorder's file: refused with a hint to --recover; with it, what was flushed plays."""
+    bag = write_test_bag(tmp_path / "killed", chunk_size=20_000)
+    (file,) = bag.glob("*.mcap")
+    data = file.read_bytes()
+    file.write_bytes(data[: len(data) // 3])
+    proc = run("ad_estimator.replay", str(bag), "--quiet", "--delay", "0", "--rate", "100")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and "--recover" in out and "Traceback" not in out, out
+    proc = run("ad_estimator.replay", str(bag), "--quiet", "--delay", "0", "--rate", "100", "--recover")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and "warning: " in out and "truncated" in out, out
+    published = int(out.split("replay: published ")[1].split()[0])
+    assert 0 < published < 3 * 26, out  # some, not all, of 3 episodes x (instance + 25 masks)
+
+
 def test_replay_missing_bag(tmp_path, ros_domain_id):
     proc = run("ad_estimator.replay", str(tmp_path / "nothing"))
     out, _ = proc.communicate(timeout=60)

@@ -20,7 +20,7 @@ from ad_estimator import metrics
 from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns
-from ad_sim.rosbag import BagError, BagReader, group_episodes
+from ad_sim.rosbag import BagError, BagReader, group_episodes, one_line_warnings
 
 INSTANCE_TOPIC = "/ad_sim/instance"
 MASK_TOPIC = "/ad_sim/view_0/mask"
@@ -61,9 +61,10 @@ def find_bags(paths: list[Path]) -> list[Path]:
     return bags
 
 
-def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC):
-    """(instance, [(stamp_ns, Image)]) per episode of the bag, in order."""
-    reader = BagReader(bag, topics=[INSTANCE_TOPIC, mask_topic])
+def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = False):
+    """(instance, [(stamp_ns, Image)]) per episode of the bag, in order. `recover`: read a truncated
+    or damaged file (a killed recorder) up to its last complete chunk, with a warning."""
+    reader = BagReader(bag, topics=[INSTANCE_TOPIC, mask_topic], recover=recover)
     for episode in group_episodes(reader, INSTANCE_TOPIC):
         frames = [(stamp_to_ns(m.header.stamp.sec, m.header.stamp.nanosec), m)
                   for _, m in episode.messages.get(mask_topic, [])]
@@ -108,14 +109,14 @@ def to_metrics(predictions: list[EpisodePrediction], parameter_names: tuple[str,
 
 
 def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], mask_topic: str = MASK_TOPIC,
-             progress: bool = True) -> dict[int, list[EpisodePrediction]]:
+             progress: bool = True, recover: bool = False) -> dict[int, list[EpisodePrediction]]:
     """Predictions per number of observed frames, every episode of every bag."""
     if model.info.class_names != tuple(metrics.FAMILIES):
         raise ModelError(f"{model.info.path}: classes {model.info.class_names} differ from {metrics.FAMILIES}")
     results: dict[int, list[EpisodePrediction]] = {k: [] for k in frame_counts}
     with tqdm(desc="episodes", unit="ep", disable=not progress, file=sys.stderr) as bar:
         for bag in bags:
-            for instance, frames in episode_frames(bag, mask_topic):
+            for instance, frames in episode_frames(bag, mask_topic, recover):
                 # Every prefix length reuses the episode's conversions and frame encodings.
                 masks = [image_to_mask(image, MAX_IMAGE_PIXELS) for _, image in frames]
                 features: dict[int, np.ndarray] = {}
@@ -149,12 +150,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="report folder (default reports/evaluate/<model id>)")
     parser.add_argument("--title", default=None, help="report title")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
+    parser.add_argument("--recover", action="store_true",
+                        help="read truncated or damaged files (a killed recorder) up to their last complete chunk")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    one_line_warnings()
     try:
         model = EstimatorModel.load(args.model, threads=args.threads)
         count = model.info.frame_count
@@ -162,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
         if bad := [k for k in extra if not 1 <= k <= count]:
             raise ValueError(f"--frames {bad}: each K must be in 1..{count}")
         frame_counts = sorted({count, *extra}, reverse=True)
-        results = evaluate(model, find_bags(args.bags), frame_counts, args.topic, progress=not args.quiet)
+        results = evaluate(model, find_bags(args.bags), frame_counts, args.topic, progress=not args.quiet,
+                           recover=args.recover)
     except (ModelError, BagError, ValueError) as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 1

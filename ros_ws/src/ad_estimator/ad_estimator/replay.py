@@ -24,7 +24,7 @@ from rclpy.utilities import remove_ros_args
 from tqdm import tqdm
 
 from ad_sim.dds import use_fast_heartbeat
-from ad_sim.rosbag import BagError, BagReader
+from ad_sim.rosbag import BagError, BagReader, one_line_warnings
 
 # Used when a bag has no metadata.yaml (a lone .mcap): what the simulator offers.
 DEFAULT_QOS = {"reliability": "reliable", "durability": "volatile", "history": "keep_last", "depth": 100}
@@ -77,9 +77,9 @@ def recorded_topics(reader: BagReader) -> dict[str, tuple[str, QoSProfile]]:
 class Replayer:
     """Publishers for a bag's topics and the paced publishing loop."""
 
-    def __init__(self, node: Node, bag: Path, topics: list[str] | None = None):
+    def __init__(self, node: Node, bag: Path, topics: list[str] | None = None, recover: bool = False):
         self.node = node
-        self.reader = BagReader(bag, raw=True, topics=topics)
+        self.reader = BagReader(bag, raw=True, topics=topics, recover=recover)
         available = recorded_topics(self.reader)
         wanted = topics or sorted(available)
         if missing := [t for t in wanted if t not in available]:
@@ -138,6 +138,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for --wait-for")
     parser.add_argument("--delay", type=float, default=0.5,
                         help="seconds between creating publishers and the first message (discovery)")
+    parser.add_argument("--recover", action="store_true",
+                        help="play truncated or damaged files (a killed recorder) up to their last complete chunk")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     if not args.rate > 0:
@@ -148,12 +150,13 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 def main(args=None) -> int:
     argv = sys.argv if args is None else args
     options = parse_args(remove_ros_args(argv)[1:])
+    one_line_warnings()
     use_fast_heartbeat()  # acknowledgements (and the wait for them at the end) in ms, not at 3 s heartbeats
     rclpy.init(args=argv)
     node = None
     try:
         node = Node("ad_replay")
-        replayer = Replayer(node, options.bag, options.topics)
+        replayer = Replayer(node, options.bag, options.topics, options.recover)
         replayer.wait_for_subscribers(options.wait_for, options.wait_timeout)
         time.sleep(options.delay)
         count = replayer.run(options.rate, progress=not options.quiet)

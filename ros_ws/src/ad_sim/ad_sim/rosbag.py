@@ -634,7 +634,7 @@ class BagReader:
         if size < 2 * MAGIC_SIZE + _FOOTER_RECORD_SIZE or data[-MAGIC_SIZE:] != MCAP_MAGIC or data[footer_at] != Opcode.FOOTER:
             self._problem(
                 f"{scan.path} is truncated: no MCAP footer ({size} bytes; was the writer killed?). "
-                "Read it with recover=True to get every complete chunk"
+                "Read every complete chunk of it with --recover (BagReader(recover=True))"
             )
             return None
         footer = Footer.read(ReadDataStream(io.BytesIO(data[footer_at + 9 : size - MAGIC_SIZE])))
@@ -779,7 +779,14 @@ def _info(path: Path) -> None:
         print(f"  {topic:40s} {types[topic]:32s} {counts.get(topic, 0)}")
 
 
+def one_line_warnings() -> None:
+    """For command lines: print BagReader's warnings (recovered files, extra files) as
+    `warning: <message>`, without Python's source-line decoration."""
+    warnings.formatwarning = lambda message, *_args, **_kwargs: f"warning: {message}\n"
+
+
 def main(argv: list[str] | None = None) -> int:
+    one_line_warnings()
     parser = argparse.ArgumentParser(prog="python -m ad_sim.rosbag", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     info = sub.add_parser("info", help="print the topics, types and message counts of a bag")
