@@ -195,7 +195,7 @@ def main(argv=None) -> int:
         print(f"demo: {exc}", file=sys.stderr)
         status = 1
     except KeyboardInterrupt:
-        print(f"demo: interrupted after {len(listener.rows)} estimates; nodes stopped", file=sys.stderr)
+        print(f"demo: interrupted after {len(listener.rows)} estimates; stopping the nodes", file=sys.stderr)
         status = 130
     finally:
         for proc in (simulator, estimator):

@@ -2,6 +2,7 @@
 exports to ONNX), the projector and the prediction heads, and the losses of SPEC 9."""
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -9,7 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ad_sim.materials import FAMILIES, FAMILY_RANGES, PARAMETER_NAMES, SAMPLED_PARAMETERS, normalise
+from ad_estimator.metrics import family_ranges
+from ad_sim.materials import FAMILIES, PARAMETER_NAMES, normalise
 
 NUM_CLASSES = 3
 NUM_PARAMS = 4
@@ -20,14 +22,16 @@ def family_scales() -> np.ndarray:
     ranges, one head for all families) to each family's own normalised range, in which SPEC 8
     defines RegL1: plasticine's E and nu span half the union range, so their errors count double."""
     out = np.ones((len(FAMILIES), len(PARAMETER_NAMES)), np.float32)
-    for f, family in enumerate(FAMILIES):
-        for name in SAMPLED_PARAMETERS[family]:
-            lo, hi, _ = FAMILY_RANGES[family][name]
+    for f, ranges in enumerate(family_ranges().values()):  # in FAMILIES order
+        for name, (lo, hi, _) in ranges.items():
             out[f, PARAMETER_NAMES.index(name)] = 1.0 / (normalise(name, hi) - normalise(name, lo))
     return out
 
 
-FAMILY_SCALES = torch.from_numpy(family_scales())
+@functools.lru_cache(maxsize=None)
+def _family_scales_on(device: torch.device) -> torch.Tensor:
+    """family_scales() as a tensor on `device`, made once per device (not copied every step)."""
+    return torch.from_numpy(family_scales()).to(device)
 
 
 class Attention(nn.Module):
@@ -121,7 +125,7 @@ def masked_regl1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, l
     """SPEC 8's RegL1: mean |pred - target| over each sample's valid (sampled) parameters, measured
     in its true family's own normalised ranges (pred and target are in the heads' union-normalised
     space), then over the batch. The same figure as ad_estimator.metrics.regl1."""
-    scale = FAMILY_SCALES.to(pred.device)[labels]
+    scale = _family_scales_on(pred.device)[labels]
     per = (torch.abs(pred - target) * scale * mask).sum(1) / mask.sum(1).clamp(min=1.0)
     return per.mean()
 

@@ -161,9 +161,10 @@ def json_text(obj, indent: int = 2) -> str:
     return json.dumps(clean(obj), indent=indent, allow_nan=False)
 
 
-def _cell(value: float) -> str:
-    """A table cell; n/a where no clip qualified (e.g. no correctly classified clip of a family)."""
-    return "n/a" if math.isnan(value) else f"{value:.3f}"
+def _cell(value: float | None) -> str:
+    """A table cell; n/a where no clip qualified (e.g. no correctly classified clip of a family):
+    NaN in memory, null in a metrics.json read back."""
+    return "n/a" if value is None or math.isnan(value) else f"{value:.3f}"
 
 
 def format_table(results: dict, title: str = "", which: str = "correct") -> str:
