@@ -16,6 +16,7 @@ from training import data, engine
 from training.models.teacher import TEACHER_PRESETS, Teacher, farthest_point_sampling, strain_features
 from training.synthetic import write_synthetic_bag
 from training.train_student import ABLATIONS, VideoSet, student_loss, videos_on_device
+from training.train_student import build_parser as build_student_parser
 from training.train_student import run as run_student
 from training.train_teacher import SYMMETRIES, transform_trajectory
 from training.train_teacher import run as run_teacher
@@ -33,7 +34,8 @@ def bags(tmp_path_factory):
 def _args(bags, out, cache, **kw):
     base = dict(bags=str(bags), cache=str(cache), out=str(out), size="tiny", epochs=2, batch_size=4, lr=3e-3,
                 min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True,
-                videos_on_device="auto", align_weight=0.1, regl1_weight=0.2, stop_after=0, amp=False)
+                videos_on_device="auto", align_weight=0.1, regl1_weight=0.2, stop_after=0, amp=False,
+                encoder_channels=None, teacher=None)
     base.update(kw)
     return Namespace(**base)
 
@@ -111,6 +113,22 @@ def test_student_ablations_train(bags, teacher_ckpt, tmp_path, ablation):
     # align_only keeps the teacher's predictor frozen; the others train their own.
     assert same == (ablation == "align_only")
     assert ("train_align" in history[0]) == (ablation != "none")
+
+
+def test_encoder_channels_override_the_preset(bags, tmp_path):
+    best = run_student(_args(bags, tmp_path / "s", tmp_path / "cache", epochs=1, kind="streaming", ablation="none",
+                             alpha=0.5, full_clips=False, encoder_channels=(4, 12)))
+    state = torch.load(best, weights_only=True)
+    assert state["meta"]["config"]["channels"] == [4, 12]
+    assert state["model"]["frame_encoder.features.0.0.weight"].shape[0] == 4
+    parser = build_student_parser()
+    assert parser.parse_args(["--bags", "b", "--out", "o", "--encoder-channels", "8,16"]).encoder_channels == (8, 16)
+    for bad in ("8,x", "8,0", ""):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--bags", "b", "--out", "o", "--encoder-channels", bad])
+    with pytest.raises(SystemExit, match="streaming student only"):
+        run_student(_args(bags, tmp_path / "u", tmp_path / "cache", kind="uniformer", ablation="none", alpha=0.5,
+                          full_clips=False, encoder_channels=(4, 12)))
 
 
 def test_batches_built_on_device_match_host_batches(bags, tmp_path):

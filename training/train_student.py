@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -132,9 +133,22 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--regl1-weight", type=float, default=REGL1_WEIGHT, help="weight of RegL1 (SPEC: 0.2)")
     p.add_argument("--videos-on-device", choices=["auto", "yes", "no"], default="auto",
                    help="keep every training video on the GPU and build batches there (auto: on CUDA)")
+    p.add_argument("--encoder-channels", type=_channels, metavar="C1,C2,...",
+                   help="streaming: channels of the frame encoder's stride-2 stages (default: the size preset's; "
+                        "wider reads finer detail and costs CPU time per frame, see benchmarks/latency.py)")
     p.add_argument("--full-clips", action="store_true",
                    help="train on full 25-frame clips only (default: streaming students see random prefixes)")
     return p
+
+
+def _channels(text: str) -> tuple[int, ...]:
+    try:
+        channels = tuple(int(c) for c in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers like 24,48,96,192, got {text!r}")
+    if not channels or min(channels) < 1:
+        raise argparse.ArgumentTypeError(f"channels must be positive, got {text!r}")
+    return channels
 
 
 def run(args) -> Path:
@@ -151,6 +165,10 @@ def run(args) -> Path:
     teacher = load_teacher(args.teacher, rt.device) if args.teacher else None
     z_dim = teacher.config.z_dim if teacher else TEACHER_PRESETS[args.size].z_dim
     config = student_preset(args.kind, args.size, z_dim)
+    if args.encoder_channels:
+        if config.kind != "streaming":
+            raise SystemExit("--encoder-channels applies to the streaming student only")
+        config = dataclasses.replace(config, channels=args.encoder_channels)
     targets = teacher_targets(teacher, ds, rt.device) if teacher and args.ablation != "none" else None
     frames = main_first(rt, lambda: data.resized_videos(ds, tuple(config.input_size),
                                                           rt.main and not args.no_progress))
