@@ -107,7 +107,7 @@ def run(args) -> dict:
         best = train_student.run(_stage_args(
             args, bags=bags["train"], out=out / name, epochs=student_epochs, batch_size=student_batch,
             teacher=str(teacher), kind=args.kind, ablation=ablation, alpha=0.5, full_clips=False, videos_on_device="auto",
-            align_weight=train_student.ALIGN_WEIGHT, regl1_weight=train_student.REGL1_WEIGHT))
+            align_weight=train_student.ALIGN_WEIGHT, regl1_weight=train_student.REGL1_WEIGHT, encoder_channels=None))
         timings[f"{name}_s"] = time.time() - t
         onnx_path = out / "models" / f"{name}.onnx"
         paths = export.export_student(best, onnx_path)
