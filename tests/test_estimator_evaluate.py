@@ -33,6 +33,14 @@ def test_report_with_temporal_ood_rows(setup, tmp_path, capsys):
     assert [p["frames_used"] for p in predictions["18"]] == [18, 18, 18]
 
 
+def test_frames_take_spaces_or_commas(setup, tmp_path, capsys):
+    """`--frames 22,18 15` is the same as `--frames 22 18 15`: both evaluators read both forms."""
+    model, bag = setup
+    assert evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", "22,18", "15", "--out", str(tmp_path),
+                          "--quiet"]) == 0
+    assert set(json.loads((tmp_path / "metrics.json").read_text())["frames"]) == {"25", "22", "18", "15"}
+
+
 def test_per_episode_prediction_is_the_models_on_those_frames(setup, tmp_path):
     """Evaluate's estimate of an episode equals the model run directly on that episode's masks."""
     model_path, bag = setup
@@ -52,6 +60,11 @@ def test_clear_errors(setup, tmp_path, capsys):
     assert "nowhere" in capsys.readouterr().err
     assert evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", "30"]) == 1
     assert "1..25" in capsys.readouterr().err
+    assert evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", "20,30"]) == 1
+    assert "[30]" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", "24,x"])
+    assert "expected frame counts such as 24 or 24,18" in capsys.readouterr().err
 
 
 def test_truncated_recording_needs_recover_and_then_gives_its_complete_episodes(setup, tmp_path, capsys):

@@ -56,9 +56,9 @@ def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
     onnx_path = tmp_path / "run" / "models" / "streaming_full.onnx"
     report_dir = tmp_path / "few_frames"
     assert main(["evaluate", "--model", str(onnx_path), "--bags", str(data / "tiny" / "unseen"), "--cache",
-                 str(tmp_path / "cache"), "--out", str(report_dir), "--frames", "15,20", "--threads", "2",
+                 str(tmp_path / "cache"), "--out", str(report_dir), "--frames", "15,20", "14", "--threads", "2",
                  "--no-progress"]) == 0
-    assert set(json.loads((report_dir / "metrics.json").read_text())["frames"]) == {"25", "20", "15"}
+    assert set(json.loads((report_dir / "metrics.json").read_text())["frames"]) == {"25", "20", "15", "14"}
 
 
 def test_evaluate_rejects_bad_prefix_lengths(capsys):
