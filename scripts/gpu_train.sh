@@ -10,7 +10,8 @@
 #   NPROC [number of GPUs]      processes (one per GPU; >1 runs through torchrun/DDP)
 #   SIZE [paper]                model size preset: tiny | small | paper
 #   TEACHER_EPOCHS [300] STUDENT_EPOCHS [20] BATCH [32] (per process) LR [1e-4]
-#   REGL1_WEIGHT [0.2, SPEC 9]  the students' RegL1 weight (the bundled model: 1.0)
+#   REGL1_WEIGHT [training's default, SPEC 9's 0.2]  the students' RegL1 weight (the bundled
+#                               model: 1.0). Not part of the resume check: use a fresh OUT to change it
 #   ABLATION_EPOCHS [STUDENT_EPOCHS]  epochs of the none and align_only ablations
 #   TEACHER [unset]             a trained teacher checkpoint to use instead of training one
 #   ABLATIONS ["none align_only full"]  KINDS ["streaming uniformer"]
@@ -19,7 +20,7 @@
 #   CACHE [OUT/cache]           DEVICE [cuda] (cpu: quick end-to-end checks of this script)
 set -euo pipefail
 if [ $# -ne 2 ]; then
-    sed -n '2,19p' "$0"
+    sed -n '2,20p' "$0"
     exit 2
 fi
 BAGS=$1
@@ -35,7 +36,6 @@ STUDENT_EPOCHS=${STUDENT_EPOCHS:-20}
 ABLATION_EPOCHS=${ABLATION_EPOCHS:-$STUDENT_EPOCHS}
 BATCH=${BATCH:-32}
 LR=${LR:-1e-4}
-REGL1_WEIGHT=${REGL1_WEIGHT:-0.2}
 ABLATIONS=${ABLATIONS:-none align_only full}
 KINDS=${KINDS:-streaming uniformer}
 STOP_AFTER=${STOP_AFTER:-0}
@@ -100,8 +100,8 @@ for student in "${STUDENTS[@]}"; do
     trained "$OUT/$name" "$epochs" && { echo "==> student $name: trained"; continue; }
     echo "==> student $name ($epochs epochs)"
     cmd=("${RUN[@]}" student --bags "$BAGS/train" --out "$OUT/$name" --epochs "$epochs"
-         --teacher "$OUT/teacher/best.pt" --kind "$kind" --ablation "$ablation" --regl1-weight "$REGL1_WEIGHT"
-         "${COMMON[@]}")
+         --teacher "$OUT/teacher/best.pt" --kind "$kind" --ablation "$ablation"
+         ${REGL1_WEIGHT:+--regl1-weight "$REGL1_WEIGHT"} "${COMMON[@]}")
     if [ "$PARALLEL" = 1 ]; then
         "${cmd[@]}" --no-progress >"$OUT/$name.log" 2>&1 &
         pids+=($!)

@@ -58,13 +58,11 @@ def test_clear_errors(setup, tmp_path, capsys):
     assert "absent.onnx" in capsys.readouterr().err
     assert evaluate.main(["--model", str(model), "--bags", str(tmp_path / "nowhere")]) == 1
     assert "nowhere" in capsys.readouterr().err
-    assert evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", "30"]) == 1
-    assert "1..25" in capsys.readouterr().err
-    assert evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", "20,30"]) == 1
-    assert "[30]" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", "24,x"])
-    assert "expected frame counts such as 24 or 24,18" in capsys.readouterr().err
+    for frames, message in (("30", "--frames [30]: each K must be in 1..25"), ("20,0", "--frames [0]: each K"),
+                            ("24,x", "expected frame counts such as 24 18 or 24,18")):
+        with pytest.raises(SystemExit) as exit_info:
+            evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", frames])
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err
 
 
 def test_truncated_recording_needs_recover_and_then_gives_its_complete_episodes(setup, tmp_path, capsys):

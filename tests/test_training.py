@@ -2,6 +2,7 @@
 kill, weights-only checkpoints, ablations, DDP over gloo with two processes."""
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import pytest
 import torch
 
 from training import data, engine
+from training.models.student import build_student, student_preset
 from training.models.teacher import TEACHER_PRESETS, Teacher, farthest_point_sampling, strain_features
 from training.synthetic import write_synthetic_bag
 from training.train_student import ABLATIONS, VideoSet, student_loss, videos_on_device
@@ -121,6 +123,9 @@ def test_encoder_channels_override_the_preset(bags, tmp_path):
     state = torch.load(best, weights_only=True)
     assert state["meta"]["config"]["channels"] == [4, 12]
     assert state["model"]["frame_encoder.features.0.0.weight"].shape[0] == 4
+    # Only the last stage has the extra stride-1 conv, also when two stages have the same width.
+    equal = build_student(dataclasses.replace(student_preset("streaming", "tiny", 8), channels=(8, 8)))
+    assert [conv[0].stride for conv in equal.frame_encoder.features] == [(2, 2), (2, 2), (1, 1)]
     parser = build_student_parser()
     assert parser.parse_args(["--bags", "b", "--out", "o", "--encoder-channels", "8,16"]).encoder_channels == (8, 16)
     for bad in ("8,x", "8,0", ""):

@@ -64,7 +64,7 @@ def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
 def test_evaluate_rejects_bad_prefix_lengths(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["evaluate", "--model", "m.onnx", "--bags", "b", "--frames", "0,30"])
-    assert exit_info.value.code == 2 and "prefix lengths must lie in 1..25" in capsys.readouterr().err
+    assert exit_info.value.code == 2 and "--frames [0, 30]: each K must be in 1..25" in capsys.readouterr().err
 
 
 def test_user_errors_are_one_line_without_traceback(tmp_path, capsys, monkeypatch):

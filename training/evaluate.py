@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ad_estimator.evaluate import frame_counts
-from ad_estimator.metrics import TEMPORAL_OOD_FRAMES, Predictions, format_table, json_text, write_report
+from ad_estimator.metrics import TEMPORAL_OOD_FRAMES, FrameCounts, Predictions, format_table, json_text, write_report
 from ad_estimator.model import EstimatorModel
 from ad_sim.materials import FRAME_COUNT
 from training import data
@@ -71,24 +70,15 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--title", help="report title")
     p.add_argument("--threads", type=int, default=1,
                    help="onnxruntime threads (clip models re-read every frame per estimate: give them cores)")
-    p.add_argument("--frames", type=_prefix_lengths, nargs="+", metavar="K",
-                   help=f"prefix lengths to score, e.g. --frames 20 15 or --frames 20,15 (default "
-                        f"{' '.join(map(str, FRAMES_SCORED))}; {FRAME_COUNT} is always scored)")
+    p.add_argument("--frames", action=FrameCounts, nargs="*", metavar="K",
+                   help=f"prefix lengths to score, e.g. --frames 20 15 or --frames 20,15 (default, also with no "
+                        f"value: {' '.join(map(str, FRAMES_SCORED))}; {FRAME_COUNT} is always scored)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
 
-def _prefix_lengths(text: str) -> list[int]:
-    counts = frame_counts(text)
-    if min(counts) < 1 or max(counts) > FRAME_COUNT:
-        raise argparse.ArgumentTypeError(f"prefix lengths must lie in 1..{FRAME_COUNT}, got {text!r}")
-    return counts
-
-
 def run(args) -> dict:
-    frames = FRAMES_SCORED
-    if args.frames:
-        frames = tuple(sorted({FRAME_COUNT, *(k for ks in args.frames for k in ks)}, reverse=True))
+    frames = tuple(sorted({FRAME_COUNT, *args.frames}, reverse=True)) if args.frames else FRAMES_SCORED
     return evaluate_model(args.model, args.bags, args.cache, args.out, args.title, not args.no_progress,
                           args.threads, frames)
 

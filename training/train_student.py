@@ -135,7 +135,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
                    help="keep every training video on the GPU and build batches there (auto: on CUDA)")
     p.add_argument("--encoder-channels", type=_channels, metavar="C1,C2,...",
                    help="streaming: channels of the frame encoder's stride-2 stages (default: the size preset's; "
-                        "wider reads finer detail and costs CPU time per frame, see benchmarks/latency.py)")
+                        "wider costs CPU time per frame, see benchmarks/latency.py)")
     p.add_argument("--full-clips", action="store_true",
                    help="train on full 25-frame clips only (default: streaming students see random prefixes)")
     return p
@@ -145,7 +145,7 @@ def _channels(text: str) -> tuple[int, ...]:
     try:
         channels = tuple(int(c) for c in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers like 24,48,96,192, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers like 24,48,96,192, got {text!r}") from None
     if not channels or min(channels) < 1:
         raise argparse.ArgumentTypeError(f"channels must be positive, got {text!r}")
     return channels
@@ -156,6 +156,8 @@ def run(args) -> Path:
         torch.set_num_threads(args.threads)
     seed_everything(args.seed)
     rt = init_runtime(args.device)
+    if args.encoder_channels and args.kind != "streaming":
+        raise SystemExit("--encoder-channels applies to the streaming student only")
     if args.ablation != "none" and not args.teacher:
         raise SystemExit("--teacher is required for --ablation align_only/full (train one with `python -m training "
                          "teacher`), or use --ablation none")
@@ -166,8 +168,6 @@ def run(args) -> Path:
     z_dim = teacher.config.z_dim if teacher else TEACHER_PRESETS[args.size].z_dim
     config = student_preset(args.kind, args.size, z_dim)
     if args.encoder_channels:
-        if config.kind != "streaming":
-            raise SystemExit("--encoder-channels applies to the streaming student only")
         config = dataclasses.replace(config, channels=args.encoder_channels)
     targets = teacher_targets(teacher, ds, rt.device) if teacher and args.ablation != "none" else None
     frames = main_first(rt, lambda: data.resized_videos(ds, tuple(config.input_size),

@@ -116,9 +116,9 @@ class FrameEncoder(nn.Module):
             raise ValueError(f"input size {config.input_size} with {len(config.channels)} stride-2 stages leaves a "
                              f"{side} map; it must be a multiple of pool={config.pool} (exportable pooling)")
         layers, cin = [], 1
-        for cout in config.channels:
-            layers += [_conv_bn(cin, cout, 2), _conv_bn(cout, cout, 1)] if cout == config.channels[-1] else \
-                [_conv_bn(cin, cout, 2)]
+        last = len(config.channels) - 1
+        for stage, cout in enumerate(config.channels):
+            layers += [_conv_bn(cin, cout, 2), _conv_bn(cout, cout, 1)] if stage == last else [_conv_bn(cin, cout, 2)]
             cin = cout
         self.features = nn.Sequential(*layers)
         self.pool = nn.AdaptiveAvgPool2d(config.pool)

@@ -134,17 +134,6 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
     return results
 
 
-def frame_counts(text: str) -> list[int]:
-    """One --frames value: `24` or `24,18` (both evaluators take `--frames 24 18` and `--frames 24,18`)."""
-    try:
-        counts = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        counts = []
-    if not counts:
-        raise argparse.ArgumentTypeError(f"expected frame counts such as 24 or 24,18, got {text!r}")
-    return counts
-
-
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="ros2 run ad_estimator evaluate",
@@ -153,7 +142,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: the bundled one)")
     parser.add_argument("--bags", type=Path, nargs="+", required=True,
                         help="bag folders, .mcap files, or folders holding bags (searched recursively)")
-    parser.add_argument("--frames", type=frame_counts, nargs="*", default=None, metavar="K",
+    parser.add_argument("--frames", action=metrics.FrameCounts, nargs="*", default=None, metavar="K",
                         help=f"also evaluate with only the first K frames observed (temporal OOD), e.g. "
                              f"--frames 24 18 or --frames 24,18; with no value: "
                              f"{' '.join(map(str, metrics.TEMPORAL_OOD_FRAMES))}")
@@ -174,11 +163,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         model = EstimatorModel.load(args.model, threads=args.threads)
         count = model.info.frame_count
-        extra = metrics.TEMPORAL_OOD_FRAMES if args.frames == [] else [k for ks in args.frames or [] for k in ks]
+        extra = metrics.TEMPORAL_OOD_FRAMES if args.frames == [] else (args.frames or [])
         if bad := [k for k in extra if not 1 <= k <= count]:
             raise ValueError(f"--frames {bad}: each K must be in 1..{count}")
-        frame_counts = sorted({count, *extra}, reverse=True)
-        results = evaluate(model, find_bags(args.bags), frame_counts, args.topic, progress=not args.quiet,
+        counts = sorted({count, *extra}, reverse=True)
+        results = evaluate(model, find_bags(args.bags), counts, args.topic, progress=not args.quiet,
                            recover=args.recover)
     except (ModelError, BagError, ValueError) as exc:
         print(f"evaluate: {exc}", file=sys.stderr)

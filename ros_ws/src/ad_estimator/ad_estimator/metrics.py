@@ -9,6 +9,7 @@ reports show the friction angle in degrees.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import math
 from dataclasses import dataclass, field
@@ -20,6 +21,21 @@ from ad_sim.materials import FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAM
 
 #: The temporal out-of-distribution rows: only the first K frames are observed.
 TEMPORAL_OOD_FRAMES = (24, 22, 18, 15)
+
+
+class FrameCounts(argparse.Action):
+    """`--frames K ...` for the evaluators: values may be spaces or commas (`24 18` or `24,18`);
+    stores the distinct counts, largest first, each checked to lie in 1..FRAME_COUNT. A bare
+    `--frames` stores [] (the caller's default set)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        try:
+            counts = {int(v) for value in values for v in value.split(",") if v.strip()}
+        except ValueError:
+            parser.error(f"{option_string}: expected frame counts such as 24 18 or 24,18, got {' '.join(values)!r}")
+        if bad := sorted(k for k in counts if not 1 <= k <= FRAME_COUNT):
+            parser.error(f"{option_string} {bad}: each K must be in 1..{FRAME_COUNT}")
+        setattr(namespace, self.dest, sorted(counts, reverse=True))
 
 # How each parameter's error is reported (SPEC 8): log-MAE (natural log), MAE, MAE in degrees.
 ERROR_KIND = {
