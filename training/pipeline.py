@@ -41,12 +41,13 @@ def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str) -
     return folder
 
 
-def _stage_args(args, **kw) -> Namespace:
-    common = dict(cache=args.cache, size=args.size, lr=LR[args.size], min_lr=1e-6, weight_decay=1e-4,
-                  val_fraction=args.val_fraction, seed=args.seed, device=args.device, threads=args.threads,
-                  no_progress=args.no_progress, stop_after=0, amp=False)
-    common.update(kw)
-    return Namespace(**common)
+def _stage_args(build_parser, args, bags: Path, out: Path, **kw) -> Namespace:
+    """A stage's arguments: its own command line's defaults (so they cannot drift from it), the
+    pipeline's shared settings, then `kw`."""
+    stage = build_parser().parse_args(["--bags", str(bags), "--out", str(out)])
+    vars(stage).update(cache=args.cache, size=args.size, lr=LR[args.size], val_fraction=args.val_fraction,
+                       seed=args.seed, device=args.device, threads=args.threads, no_progress=args.no_progress, **kw)
+    return stage
 
 
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
@@ -86,8 +87,8 @@ def run(args) -> dict:
     timings = {"generate_s": time.time() - started}
 
     t = time.time()
-    teacher = train_teacher.run(_stage_args(args, bags=bags["train"], out=out / "teacher", epochs=teacher_epochs,
-                                            batch_size=teacher_batch))
+    teacher = train_teacher.run(_stage_args(train_teacher.build_parser, args, bags["train"], out / "teacher",
+                                            epochs=teacher_epochs, batch_size=teacher_batch))
     timings["teacher_s"] = time.time() - t
 
     summary = {"size": args.size, "seed": args.seed, "teacher": str(teacher), "teacher_metrics": {}, "students": {}}
@@ -105,9 +106,8 @@ def run(args) -> dict:
         name = f"{args.kind}_{ablation}"
         t = time.time()
         best = train_student.run(_stage_args(
-            args, bags=bags["train"], out=out / name, epochs=student_epochs, batch_size=student_batch,
-            teacher=str(teacher), kind=args.kind, ablation=ablation, alpha=0.5, full_clips=False, videos_on_device="auto",
-            align_weight=train_student.ALIGN_WEIGHT, regl1_weight=train_student.REGL1_WEIGHT, encoder_channels=None))
+            train_student.build_parser, args, bags["train"], out / name, epochs=student_epochs,
+            batch_size=student_batch, teacher=str(teacher), kind=args.kind, ablation=ablation))
         timings[f"{name}_s"] = time.time() - t
         onnx_path = out / "models" / f"{name}.onnx"
         paths = export.export_student(best, onnx_path)
