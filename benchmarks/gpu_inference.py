@@ -1,0 +1,148 @@
+#!/usr/bin/env python3
+"""Student inference time on a GPU with PyTorch (the robot runs ONNX on its CPU: benchmarks/latency.py).
+
+Times, at batch 1 and from a uint8 mask on the host to the outputs back on the host:
+- streaming, per frame: one frame encoding plus the temporal head over the 25-frame window of
+  embeddings (the streaming student's steady state; earlier embeddings are kept on the GPU);
+- streaming and UniFormer-style, per instance: the whole 25-frame clip in one forward pass
+  (what the paper's 3.83 ms on an RTX 4090 measures);
+and throughput in instances per second for batches of whole clips.
+
+Weights are random unless --checkpoint is given: the time of these fixed-shape networks does
+not depend on their values. Needs torch only (no warp, ROS or onnxruntime):
+
+  PYTHONPATH=.:ros_ws/src/ad_sim:ros_ws/src/ad_estimator python benchmarks/gpu_inference.py --json out.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator")]
+
+from training.models.student import FRAME_COUNT, build_student, student_preset  # noqa: E402
+from training.models.teacher import TEACHER_PRESETS  # noqa: E402
+
+
+def percentiles(seconds: list[float]) -> dict:
+    a = np.asarray(seconds) * 1e3
+    return {"n": len(a), "p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)),
+            "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean())}
+
+
+def timed(step, iterations: int, warmup: int, device: torch.device) -> list[float]:
+    """Wall time of `step()` from the host's point of view (synchronised after each call)."""
+    def synchronise():
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    for _ in range(warmup):
+        step()
+    synchronise()
+    out = []
+    for _ in range(iterations):
+        start = time.perf_counter()
+        step()
+        synchronise()
+        out.append(time.perf_counter() - start)
+    return out
+
+
+def synthetic_clips(count: int, size: tuple[int, int], seed: int) -> np.ndarray:
+    """(count, 25, H, W) uint8 masks: discs falling at random positions (content does not change timing)."""
+    rng = np.random.default_rng(seed)
+    h, w = size
+    yy, xx = np.mgrid[0:h, 0:w]
+    clips = np.zeros((count, FRAME_COUNT, h, w), np.uint8)
+    for c in range(count):
+        x0, r = rng.uniform(0.3, 0.7) * w, rng.uniform(0.1, 0.2) * h
+        for t in range(FRAME_COUNT):
+            y = min(0.2 * h + 0.03 * h * t, h - r)
+            clips[c, t][(xx - x0) ** 2 + (yy - y) ** 2 <= r * r] = 255
+    return clips
+
+
+def to_device(masks: np.ndarray, device: torch.device) -> torch.Tensor:
+    return torch.from_numpy(masks).to(device, non_blocking=False).float().mul_(1.0 / 255.0)
+
+
+def outputs_to_host(out: dict) -> None:
+    for key in ("logits", "params", "params_logvar"):
+        out[key].cpu()
+
+
+def measure(kind: str, args, device: torch.device) -> dict:
+    if args.checkpoint and kind == args.checkpoint_kind:
+        from training.train_student import load_student  # needs mcap (training data); random weights do not
+        model, _ = load_student(args.checkpoint, device)
+        weights = str(args.checkpoint)
+    else:
+        model = build_student(student_preset(kind, args.size, TEACHER_PRESETS[args.size].z_dim)).to(device).eval()
+        weights = "random"
+    size = tuple(model.config.input_size)
+    clips = synthetic_clips(max(args.batch, 4), size, seed=0)
+    valid = torch.ones(1, FRAME_COUNT, device=device)
+    result = {"weights": weights, "input_size": list(size),
+              "parameters": sum(p.numel() for p in model.parameters())}
+    with torch.inference_mode(), torch.autocast(device.type, torch.bfloat16, enabled=args.amp):
+        result["per_instance"] = percentiles(timed(
+            lambda: outputs_to_host(model(to_device(clips[:1], device), valid)), args.iterations, args.warmup, device))
+        if kind == "streaming":
+            # Steady state: the window's embeddings stay on the GPU; a new frame is encoded and the
+            # temporal head reads the last 25.
+            window = model.frame_encoder(to_device(clips[0], device)[:, None]).unsqueeze(0)
+            frame = clips[0, -1][None, None]
+
+            def step():
+                nonlocal window
+                embedding = model.frame_encoder(to_device(frame, device))
+                window = torch.cat([window[:, 1:], embedding[:, None]], dim=1)
+                outputs_to_host(model.temporal(window, valid))
+
+            result["per_frame"] = percentiles(timed(step, args.iterations, args.warmup, device))
+        batch_valid = torch.ones(args.batch, FRAME_COUNT, device=device)
+        batch = clips[:args.batch]
+        seconds = timed(lambda: outputs_to_host(model(to_device(batch, device), batch_valid)),
+                        max(5, args.iterations // 20), 3, device)
+        result["throughput"] = {"batch": args.batch, "instances_per_s": args.batch / float(np.median(seconds))}
+    return result
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--kinds", nargs="+", choices=["streaming", "uniformer"], default=["streaming", "uniformer"])
+    parser.add_argument("--size", choices=["tiny", "small", "paper"], default="paper", help="model preset")
+    parser.add_argument("--checkpoint", type=Path, default=None, help="a student checkpoint to time instead of random weights")
+    parser.add_argument("--device", default="cuda", help="cuda (default) or cpu")
+    parser.add_argument("--iterations", type=int, default=500, help="timed calls per figure")
+    parser.add_argument("--warmup", type=int, default=50)
+    parser.add_argument("--batch", type=int, default=64, help="clips per batch for the throughput figure")
+    parser.add_argument("--amp", action="store_true", help="bfloat16 autocast")
+    parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    args = parser.parse_args(argv)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error("no CUDA device here; pass --device cpu to try the script on a CPU")
+    args.checkpoint_kind = None
+    if args.checkpoint:
+        args.checkpoint_kind = torch.load(args.checkpoint, map_location="cpu", weights_only=False)["meta"]["kind"]
+    torch.backends.cudnn.benchmark = True
+    result = {kind: measure(kind, args, device) for kind in args.kinds}
+    result["setup"] = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
+                       "torch": torch.__version__, "size": args.size, "amp": args.amp, "iterations": args.iterations}
+    print(json.dumps(result, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
