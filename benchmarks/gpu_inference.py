@@ -28,14 +28,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator")]
 
+from timing import percentiles  # noqa: E402  (benchmarks/, the script's folder)
 from training.models.student import FRAME_COUNT, build_student, student_preset  # noqa: E402
 from training.models.teacher import TEACHER_PRESETS  # noqa: E402
-
-
-def percentiles(seconds: list[float]) -> dict:
-    a = np.asarray(seconds) * 1e3
-    return {"n": len(a), "p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)),
-            "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean())}
 
 
 def timed(step, iterations: int, warmup: int, device: torch.device) -> list[float]:

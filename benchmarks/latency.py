@@ -35,6 +35,7 @@ sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_w
 from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel  # noqa: E402
 from ad_estimator.window import FrameWindow  # noqa: E402
+from timing import percentiles  # noqa: E402  (benchmarks/, the script's folder)
 
 TOPIC = "/latency_benchmark/mask"
 FRAME_NS = 25_000_000
@@ -58,14 +59,6 @@ def episode_masks(bag: Path | None, count: int) -> list[np.ndarray]:
                 clip[t][((xx - 50 - 8 * e) / 20.0) ** 2 + ((yy - cy) / (20.0 - 0.2 * t)) ** 2 <= 1] = 255
             clips.append(clip)
     return [clips[i % len(clips)] for i in range(count)]
-
-
-def percentiles(values) -> dict:
-    a = np.asarray(values, float) * 1e3
-    if not len(a):
-        return {"n": 0}
-    return {"n": int(len(a)), "p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)),
-            "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "max_ms": float(a.max())}
 
 
 class FakeImage:

@@ -140,23 +140,20 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randrange(1, 100)))
     args.logs.mkdir(parents=True, exist_ok=True)
-    rclpy.init()
+    # Ctrl-C is ours: Python raises KeyboardInterrupt in this thread and the finally block stops
+    # everything. (With rclpy's handler, a SIGINT could shut the context down without raising it.)
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("ad_demo")
     listener = Listener(node)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
 
-    def spin() -> None:
-        try:
-            executor.spin()
-        except ExternalShutdownException:  # Ctrl-C: rclpy's signal handler shut the context down first
-            pass
-
-    spinner = threading.Thread(target=spin, daemon=True)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
 
     model_args = ["--ros-args", "-p", f"model_path:={args.model}"] if args.model else []
