@@ -145,9 +145,12 @@ def main(argv=None) -> int:
 
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randrange(1, 100)))
     args.logs.mkdir(parents=True, exist_ok=True)
-    # Ctrl-C is ours: Python raises KeyboardInterrupt in this thread and the finally block stops
-    # everything. (With rclpy's handler, a SIGINT could shut the context down without raising it.)
+    # Ctrl-C is ours, as in the sim and record nodes: KeyboardInterrupt in this thread, and the
+    # finally block stops everything. Installed explicitly, because a shell without job control
+    # starts background jobs with SIGINT ignored, and rclpy's own handler could shut the context
+    # down without raising anything here.
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     node = rclpy.create_node("ad_demo")
     listener = Listener(node)
     executor = SingleThreadedExecutor()
