@@ -86,3 +86,26 @@ def test_the_shipped_reports_are_the_bundled_models(split):
     report = json.loads((RESULTS / f"streaming_full20_{split}" / "metrics.json").read_text())
     assert bundled["evaluation"][split]["full"] == report["frames"]["25"]
     assert f"`{bundled['model_id']}`" in (models / "MODEL_CARD.md").read_text()
+
+
+# docs/results/paper/experiments/README.md, section 4: row label -> metrics file
+SECTION_4 = {
+    "unseen, shipped (`full`, 20 epochs)": "streaming_full20_unseen/metrics.json",
+    "unseen, `none`, 10 epochs": "ablation_none_10ep_unseen.json",
+    "unseen, `align_only`, 10 epochs": "ablation_align_only_10ep_unseen.json",
+    "unseen, `a1`, 20 epochs": "experiments/align_weight1_full20_unseen.json",
+    "unseen, previous recipe `none`, 10 epochs": "experiments/previous_recipe_ablation_none_10ep_unseen.json",
+    "unseen, previous recipe `align_only`, 10 epochs": "experiments/previous_recipe_ablation_align_only_10ep_unseen.json",
+    "seen, shipped": "streaming_full20_seen/metrics.json",
+    "seen, `none`": "ablation_none_10ep_seen.json",
+    "seen, `align_only`": "ablation_align_only_10ep_seen.json",
+    "seen, `a1`": "experiments/align_weight1_full20_seen.json",
+}
+
+
+def test_experiments_section_4_matches_the_metrics_files():
+    text = (RESULTS / "experiments" / "README.md").read_text()
+    rows = table_rows(text, "## 4. ")
+    for label, file in SECTION_4.items():
+        assert label in rows, f"experiments section 4 lost its row {label!r}"
+        assert rows[label] == measured(RESULTS / file), f"experiments section 4 row {label!r} differs from {file}"
