@@ -9,7 +9,8 @@ Times, at batch 1 and from a uint8 mask on the host to the outputs back on the h
 and throughput in instances per second for batches of whole clips.
 
 Weights are random unless --checkpoint is given: the time of these fixed-shape networks does
-not depend on their values. Needs torch only (no warp, ROS or onnxruntime):
+not depend on their values. Needs torch and warp (imported by ad_sim.materials), not ROS or
+onnxruntime; --checkpoint also needs mcap:
 
   PYTHONPATH=.:ros_ws/src/ad_sim:ros_ws/src/ad_estimator python benchmarks/gpu_inference.py --json out.json
 """
@@ -28,7 +29,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator")]
 
-from timing import percentiles  # noqa: E402  (benchmarks/, the script's folder)
+from common import falling_disc_clips, percentiles  # noqa: E402  (benchmarks/, the script's folder)
 from training.models.student import FRAME_COUNT, build_student, student_preset  # noqa: E402
 from training.models.teacher import TEACHER_PRESETS  # noqa: E402
 
@@ -51,22 +52,8 @@ def timed(step, iterations: int, warmup: int, device: torch.device) -> list[floa
     return out
 
 
-def synthetic_clips(count: int, size: tuple[int, int], seed: int) -> np.ndarray:
-    """(count, 25, H, W) uint8 masks: discs falling at random positions (content does not change timing)."""
-    rng = np.random.default_rng(seed)
-    h, w = size
-    yy, xx = np.mgrid[0:h, 0:w]
-    clips = np.zeros((count, FRAME_COUNT, h, w), np.uint8)
-    for c in range(count):
-        x0, r = rng.uniform(0.3, 0.7) * w, rng.uniform(0.1, 0.2) * h
-        for t in range(FRAME_COUNT):
-            y = min(0.2 * h + 0.03 * h * t, h - r)
-            clips[c, t][(xx - x0) ** 2 + (yy - y) ** 2 <= r * r] = 255
-    return clips
-
-
 def to_device(masks: np.ndarray, device: torch.device) -> torch.Tensor:
-    return torch.from_numpy(masks).to(device, non_blocking=False).float().mul_(1.0 / 255.0)
+    return torch.from_numpy(masks).to(device).float().mul_(1.0 / 255.0)
 
 
 def outputs_to_host(out: dict) -> None:
@@ -74,23 +61,18 @@ def outputs_to_host(out: dict) -> None:
         out[key].cpu()
 
 
-def measure(kind: str, args, device: torch.device) -> dict:
-    if args.checkpoint and kind == args.checkpoint_kind:
-        from training.train_student import load_student  # needs mcap (training data); random weights do not
-        model, _ = load_student(args.checkpoint, device)
-        weights = str(args.checkpoint)
-    else:
-        model = build_student(student_preset(kind, args.size, TEACHER_PRESETS[args.size].z_dim)).to(device).eval()
-        weights = "random"
+def measure(model: torch.nn.Module, weights: str, args, device: torch.device) -> dict:
     size = tuple(model.config.input_size)
-    clips = synthetic_clips(max(args.batch, 4), size, seed=0)
+    if size[0] != size[1]:
+        raise ValueError(f"input size {size}: the synthetic clips are square")
+    clips = falling_disc_clips(args.batch, size[0])
     valid = torch.ones(1, FRAME_COUNT, device=device)
     result = {"weights": weights, "input_size": list(size),
               "parameters": sum(p.numel() for p in model.parameters())}
     with torch.inference_mode(), torch.autocast(device.type, torch.bfloat16, enabled=args.amp):
         result["per_instance"] = percentiles(timed(
             lambda: outputs_to_host(model(to_device(clips[:1], device), valid)), args.iterations, args.warmup, device))
-        if kind == "streaming":
+        if model.config.kind == "streaming":
             # Steady state: the window's embeddings stay on the GPU; a new frame is encoded and the
             # temporal head reads the last 25.
             window = model.frame_encoder(to_device(clips[0], device)[:, None]).unsqueeze(0)
@@ -104,8 +86,7 @@ def measure(kind: str, args, device: torch.device) -> dict:
 
             result["per_frame"] = percentiles(timed(step, args.iterations, args.warmup, device))
         batch_valid = torch.ones(args.batch, FRAME_COUNT, device=device)
-        batch = clips[:args.batch]
-        seconds = timed(lambda: outputs_to_host(model(to_device(batch, device), batch_valid)),
+        seconds = timed(lambda: outputs_to_host(model(to_device(clips, device), batch_valid)),
                         max(5, args.iterations // 20), 3, device)
         result["throughput"] = {"batch": args.batch, "instances_per_s": args.batch / float(np.median(seconds))}
     return result
@@ -126,11 +107,19 @@ def main(argv=None) -> int:
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         parser.error("no CUDA device here; pass --device cpu to try the script on a CPU")
-    args.checkpoint_kind = None
+    trained = {}
     if args.checkpoint:
-        args.checkpoint_kind = torch.load(args.checkpoint, map_location="cpu", weights_only=False)["meta"]["kind"]
+        from training.train_student import load_student  # needs mcap (training data); random weights do not
+        model, meta = load_student(args.checkpoint, device)
+        trained[meta["kind"]] = model
     torch.backends.cudnn.benchmark = True
-    result = {kind: measure(kind, args, device) for kind in args.kinds}
+    result = {}
+    for kind in args.kinds:
+        if kind in trained:
+            result[kind] = measure(trained[kind], str(args.checkpoint), args, device)
+        else:
+            model = build_student(student_preset(kind, args.size, TEACHER_PRESETS[args.size].z_dim))
+            result[kind] = measure(model.to(device).eval(), "random", args, device)
     result["setup"] = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
                        "torch": torch.__version__, "size": args.size, "amp": args.amp, "iterations": args.iterations}
     print(json.dumps(result, indent=2))

@@ -35,7 +35,7 @@ sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_w
 from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel  # noqa: E402
 from ad_estimator.window import FrameWindow  # noqa: E402
-from timing import percentiles  # noqa: E402  (benchmarks/, the script's folder)
+from common import falling_disc_clips, percentiles  # noqa: E402  (benchmarks/, the script's folder)
 
 TOPIC = "/latency_benchmark/mask"
 FRAME_NS = 25_000_000
@@ -44,20 +44,10 @@ EPISODE_NS = 1_500_000_000
 
 def episode_masks(bag: Path | None, count: int) -> list[np.ndarray]:
     """Mask clips (25, H, W) uint8: from a bag's first camera if given, else a synthetic falling disc."""
-    if bag is not None:
-        from ad_estimator.evaluate import episode_frames
-        clips = [np.stack([image_to_mask(m, MAX_IMAGE_PIXELS) for _, m in frames])
-                 for _, frames in episode_frames(bag)]
-    else:
-        size = 128
-        yy, xx = np.mgrid[0:size, 0:size]
-        clips = []
-        for e in range(4):
-            clip = np.zeros((25, size, size), np.uint8)
-            for t in range(25):
-                cy = min(25 + 0.5 * 9.8 * (t * 0.025) ** 2 * size * 3, size - 22)
-                clip[t][((xx - 50 - 8 * e) / 20.0) ** 2 + ((yy - cy) / (20.0 - 0.2 * t)) ** 2 <= 1] = 255
-            clips.append(clip)
+    if bag is None:
+        return list(falling_disc_clips(count))
+    from ad_estimator.evaluate import episode_frames
+    clips = [np.stack([image_to_mask(m, MAX_IMAGE_PIXELS) for _, m in frames]) for _, frames in episode_frames(bag)]
     return [clips[i % len(clips)] for i in range(count)]
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from training.engine import save_checkpoint
 from training.models.student import build_student, student_preset
 from training.models.teacher import TEACHER_PRESETS
 
@@ -40,8 +41,8 @@ def test_times_a_trained_checkpoint_when_given(tmp_path):
     config = student_preset("streaming", "tiny", TEACHER_PRESETS["tiny"].z_dim)
     model = build_student(config)
     checkpoint = tmp_path / "student.pt"
-    torch.save({"model": model.state_dict(), "epoch": 1, "meta": {"config": config.to_dict(), "kind": "streaming"}},
-               checkpoint)
+    save_checkpoint(checkpoint, {"model": model.state_dict(), "epoch": 1,
+                                 "meta": {"config": config.to_dict(), "kind": "streaming"}})
     result = run("--device", "cpu", "--kinds", "streaming", "--checkpoint", str(checkpoint), "--iterations", "2",
                  "--warmup", "1", "--batch", "2")
     assert result.returncode == 0, result.stderr

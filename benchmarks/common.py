@@ -1,0 +1,29 @@
+"""Shared by the benchmark scripts: synthetic input clips and the summary of timed samples."""
+from __future__ import annotations
+
+import numpy as np
+
+FRAME_COUNT = 25
+
+
+def falling_disc_clips(count: int, size: int = 128) -> np.ndarray:
+    """(count, 25, size, size) uint8 masks of a disc that falls and squashes, in 4 variants that
+    differ in position (what a mask contains does not change a fixed-shape network's time)."""
+    k = size / 128.0  # the shapes are drawn for 128 px and scaled
+    yy, xx = np.mgrid[0:size, 0:size]
+    variants = np.zeros((4, FRAME_COUNT, size, size), np.uint8)
+    for e in range(4):
+        for t in range(FRAME_COUNT):
+            cy = min(25 * k + 0.5 * 9.8 * (t * 0.025) ** 2 * size * 3, size - 22 * k)
+            disc = ((xx - (50 + 8 * e) * k) / (20.0 * k)) ** 2 + ((yy - cy) / ((20.0 - 0.2 * t) * k)) ** 2 <= 1
+            variants[e, t][disc] = 255
+    return variants[np.arange(count) % 4]
+
+
+def percentiles(seconds) -> dict:
+    """Samples in seconds -> n, p50/p95/p99, mean and max in milliseconds."""
+    a = np.asarray(seconds, float) * 1e3
+    if not len(a):
+        return {"n": 0}
+    return {"n": int(len(a)), "p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)),
+            "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "max_ms": float(a.max())}
