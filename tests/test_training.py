@@ -14,10 +14,10 @@ import pytest
 import torch
 
 from training import data, engine
-from training.models.student import build_student, student_preset
+from training.models.student import build_student, previous_observed, student_preset
 from training.models.teacher import TEACHER_PRESETS, Teacher, farthest_point_sampling, strain_features
 from training.synthetic import write_synthetic_bag
-from training.train_student import ABLATIONS, VideoSet, student_loss, videos_on_device
+from training.train_student import ABLATIONS, VideoSet, load_student, student_loss, videos_on_device
 from training.train_student import build_parser as build_student_parser
 from training.train_student import run as run_student
 from training.train_teacher import SYMMETRIES, transform_trajectory
@@ -37,7 +37,7 @@ def _args(bags, out, cache, **kw):
     base = dict(bags=str(bags), cache=str(cache), out=str(out), size="tiny", epochs=2, batch_size=4, lr=3e-3,
                 min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True,
                 videos_on_device="auto", align_weight=0.1, regl1_weight=0.2, stop_after=0, amp=False,
-                encoder_channels=None, teacher=None)
+                encoder_channels=None, previous_frame=False, teacher=None)
     base.update(kw)
     return Namespace(**base)
 
@@ -134,6 +134,32 @@ def test_encoder_channels_override_the_preset(bags, tmp_path):
     with pytest.raises(SystemExit, match="streaming student only"):
         run_student(_args(bags, tmp_path / "u", tmp_path / "cache", kind="uniformer", ablation="none", alpha=0.5,
                           full_clips=False, encoder_channels=(4, 12)))
+
+
+def test_previous_observed_skips_unobserved_slots():
+    masks = torch.arange(5.0).view(1, 5, 1, 1).expand(2, 5, 2, 3).clone()  # slot k holds the value k
+    valid = torch.tensor([[1.0, 1, 1, 1, 1], [1, 0, 1, 0, 1]])
+    previous = previous_observed(masks, valid)[:, :, 0, 0]
+    # The first slot has no earlier frame and sees itself; a gap is skipped to the last observed slot.
+    assert previous.tolist() == [[0, 0, 1, 2, 3], [0, 0, 0, 2, 2]]
+
+
+def test_previous_frame_student_trains_with_two_input_channels(bags, tmp_path):
+    best = run_student(_args(bags, tmp_path / "s", tmp_path / "cache", epochs=1, kind="streaming", ablation="none",
+                             alpha=0.5, full_clips=False, previous_frame=True))
+    model, meta = load_student(best)
+    assert meta["config"]["previous_frame"] is True
+    assert model.frame_encoder.features[0][0].weight.shape[1] == 2
+    # The previous frame changes the embedding: the same mask after a different one encodes differently.
+    mask = torch.zeros(1, 1, 32, 32)
+    mask[..., 10:20, 10:20] = 1.0
+    with torch.no_grad():
+        still = model.frame_encoder(torch.cat([mask, mask], 1))
+        moved = model.frame_encoder(torch.cat([mask, mask.roll(3, -2)], 1))
+    assert not torch.allclose(still, moved)
+    with pytest.raises(SystemExit, match="streaming student only"):
+        run_student(_args(bags, tmp_path / "u", tmp_path / "cache", kind="uniformer", ablation="none", alpha=0.5,
+                          full_clips=False, previous_frame=True))
 
 
 def test_batches_built_on_device_match_host_batches(bags, tmp_path):

@@ -34,6 +34,10 @@ class StudentConfig:
     # a jelly's stiffness shows as a few pixels of squash and rebound, which pooled CNN features
     # blur. False for models trained before they existed.
     moments: bool = False
+    # The frame encoder also sees the previous observed frame (a second input channel), so the CNN
+    # can compare consecutive masks pixel by pixel before pooling blurs a few pixels of squash.
+    # False for models trained before it existed.
+    previous_frame: bool = False
     temporal_width: int = 128
     temporal_depth: int = 2
     temporal_heads: int = 4
@@ -115,7 +119,7 @@ class FrameEncoder(nn.Module):
         if any(n < config.pool or n % config.pool for n in side):
             raise ValueError(f"input size {config.input_size} with {len(config.channels)} stride-2 stages leaves a "
                              f"{side} map; it must be a multiple of pool={config.pool} (exportable pooling)")
-        layers, cin = [], 1
+        layers, cin = [], frame_channels(config)
         last = len(config.channels) - 1
         for stage, cout in enumerate(config.channels):
             layers += [_conv_bn(cin, cout, 2), _conv_bn(cout, cout, 1)] if stage == last else [_conv_bn(cin, cout, 2)]
@@ -133,11 +137,28 @@ class FrameEncoder(nn.Module):
                                      nn.LayerNorm(config.embed_dim))
 
     def forward(self, frame: torch.Tensor) -> torch.Tensor:
+        """frame (B, C, H, W): the mask, then (with previous_frame) the previous observed mask."""
         x = self.pool(self.features(frame)).flatten(1)
         if self.moments:
             # Moments are in [-1, 1]; x4 puts them on the scale of the CNN features.
-            x = torch.cat([x, 4.0 * shape_moments(frame, self.xs, self.ys)], 1)
+            x = torch.cat([x, 4.0 * shape_moments(frame[:, :1], self.xs, self.ys)], 1)
         return self.project(x)
+
+
+def frame_channels(config: StudentConfig) -> int:
+    """Input channels of the streaming frame encoder: the mask, and the previous one if configured."""
+    return 2 if config.previous_frame else 1
+
+
+def previous_observed(masks: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(B, T, H, W) masks -> for each slot the mask of the nearest earlier valid slot; the slot's
+    own mask where there is none (the first frame of an episode has no motion yet)."""
+    b, t = valid.shape
+    slots = torch.arange(t, device=masks.device).expand(b, t)
+    marks = torch.where(valid > 0, slots, torch.full_like(slots, -1))
+    earlier = torch.cat([marks.new_full((b, 1), -1), marks[:, :-1]], dim=1).cummax(dim=1).values
+    source = torch.where(earlier >= 0, earlier, slots)
+    return masks.gather(1, source[:, :, None, None].expand_as(masks))
 
 
 class TemporalHead(nn.Module):
@@ -176,8 +197,11 @@ class StreamingStudent(nn.Module):
     def forward(self, masks: torch.Tensor, valid: torch.Tensor) -> dict[str, torch.Tensor]:
         """masks (B, T, H, W) in [0, 1], valid (B, T)."""
         b, t, h, w = masks.shape
+        frames = masks.unsqueeze(2)
+        if self.config.previous_frame:
+            frames = torch.cat([frames, previous_observed(masks, valid).unsqueeze(2)], dim=2)
         keep = valid.reshape(-1) > 0  # unobserved frames are never encoded (their embedding is zeroed anyway)
-        encoded = self.frame_encoder(masks.reshape(b * t, 1, h, w)[keep])
+        encoded = self.frame_encoder(frames.reshape(b * t, -1, h, w)[keep])
         emb = encoded.new_zeros(b * t, encoded.shape[-1]).index_copy(0, keep.nonzero()[:, 0], encoded)
         return self.temporal(emb.reshape(b, t, -1), valid)
 
