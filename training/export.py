@@ -90,8 +90,12 @@ def frame_encoder_path(onnx_path: Path) -> Path:
     return onnx_path.with_name(onnx_path.stem + ".frame.onnx")
 
 
-def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None = None) -> list[Path]:
-    """Writes the ONNX file(s) for a student checkpoint; `out` is <name>.onnx. Returns the paths."""
+def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None = None,
+                   whole_clip: bool = False) -> list[Path]:
+    """Writes the ONNX file(s) for a student checkpoint; `out` is <name>.onnx. Returns the paths.
+
+    `whole_clip` exports a streaming student as one clip model (masks in, estimate out), which the
+    estimator runs like the UniFormer: every frame is encoded again for each estimate."""
     model, meta = load_student(checkpoint)
     model = model.float().eval()
     config = model.config
@@ -103,7 +107,10 @@ def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None
     extra = {"ad.training": json.dumps({k: meta[k] for k in ("size", "ablation", "seed") if k in meta})}
     written = []
     with torch.no_grad():
-        if config.kind == "streaming":
+        if config.kind == "streaming" and config.previous_frame and not whole_clip:
+            raise ValueError(f"{checkpoint}: the estimator cannot stream a --previous-frame student frame by frame "
+                             "yet; export it with --whole-clip")
+        if config.kind == "streaming" and not whole_clip:
             frame_path = frame_encoder_path(out)
             _export(model.frame_encoder, (torch.zeros(2, 1, h, w),), frame_path, ["frame"], ["embedding"],
                     {"frame": {0: "batch"}, "embedding": {0: "batch"}})
@@ -147,12 +154,13 @@ def verify_export(checkpoint: str | Path, onnx_path: str | Path, seed: int = 0, 
         ref = model(torch.from_numpy(masks), torch.from_numpy(valid))
     onnx_path = Path(onnx_path)
     opts = ort.SessionOptions()
-    if model.config.kind == "streaming":
+    session = ort.InferenceSession(str(onnx_path), opts)
+    if "embeddings" in {i.name for i in session.get_inputs()}:  # streaming: frame encoder + temporal head
         frame = ort.InferenceSession(str(frame_encoder_path(onnx_path)), opts)
         emb = frame.run(None, {"frame": masks.reshape(-1, 1, h, w)})[0].reshape(2, FRAME_COUNT, -1)
-        got = ort.InferenceSession(str(onnx_path), opts).run(OUTPUTS, {"embeddings": emb, "valid": valid})
+        got = session.run(OUTPUTS, {"embeddings": emb, "valid": valid})
     else:
-        got = ort.InferenceSession(str(onnx_path), opts).run(OUTPUTS, {"masks": masks, "valid": valid})
+        got = session.run(OUTPUTS, {"masks": masks, "valid": valid})
     err = max(float(np.abs(g - ref[name].numpy()).max()) for g, name in zip(got, OUTPUTS))
     if err > atol:
         raise RuntimeError(f"ONNX export of {checkpoint} differs from torch by {err:.2e} (> {atol})")
@@ -167,11 +175,13 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--out", required=True, help="output <name>.onnx")
     p.add_argument("--model-id", help="ad.model_id (default: <name>-<kind>-<ablation>-<weights hash>)")
     p.add_argument("--seed", type=int, default=0, help="seed of the verification input")
+    p.add_argument("--whole-clip", action="store_true",
+                   help="export a streaming student as one clip model (no per-frame encoder file)")
     return p
 
 
 def run(args) -> list[Path]:
-    paths = export_student(args.checkpoint, args.out, args.model_id)
+    paths = export_student(args.checkpoint, args.out, args.model_id, args.whole_clip)
     err = verify_export(args.checkpoint, args.out, args.seed)
     print(f"exported {', '.join(map(str, paths))}; onnxruntime vs torch max error {err:.2e}")
     return paths

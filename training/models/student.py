@@ -125,7 +125,8 @@ class FrameEncoder(nn.Module):
             layers += [_conv_bn(cin, cout, 2), _conv_bn(cout, cout, 1)] if stage == last else [_conv_bn(cin, cout, 2)]
             cin = cout
         self.features = nn.Sequential(*layers)
-        self.pool = nn.AdaptiveAvgPool2d(config.pool)
+        # A fixed kernel (the map is a multiple of pool): exports even where the map's size is not traced.
+        self.pool = nn.AvgPool2d((int(side[0]) // config.pool, int(side[1]) // config.pool))
         self.moments = config.moments
         extra = MOMENT_COUNT if config.moments else 0
         h, w = config.input_size
@@ -153,11 +154,13 @@ def frame_channels(config: StudentConfig) -> int:
 def previous_observed(masks: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """(B, T, H, W) masks -> for each slot the mask of the nearest earlier valid slot; the slot's
     own mask where there is none (the first frame of an episode has no motion yet)."""
-    b, t = valid.shape
-    slots = torch.arange(t, device=masks.device).expand(b, t)
-    marks = torch.where(valid > 0, slots, torch.full_like(slots, -1))
-    earlier = torch.cat([marks.new_full((b, 1), -1), marks[:, :-1]], dim=1).cummax(dim=1).values
-    source = torch.where(earlier >= 0, earlier, slots)
+    t = valid.shape[1]
+    slots = torch.arange(t, device=masks.device)
+    earlier = slots[None, :] < slots[:, None]  # [k, j]: slot j comes before slot k
+    # The latest earlier valid slot (ReduceMax over a triangle: cummax does not export to ONNX).
+    candidates = torch.where(earlier[None] & (valid[:, None, :] > 0), slots[None, None, :], -1)
+    latest = candidates.amax(-1)
+    source = torch.where(latest >= 0, latest, slots[None, :])
     return masks.gather(1, source[:, :, None, None].expand_as(masks))
 
 
@@ -196,12 +199,16 @@ class StreamingStudent(nn.Module):
 
     def forward(self, masks: torch.Tensor, valid: torch.Tensor) -> dict[str, torch.Tensor]:
         """masks (B, T, H, W) in [0, 1], valid (B, T)."""
-        b, t, h, w = masks.shape
+        b, t = masks.shape[:2]
+        h, w = self.config.input_size  # static sizes keep the pooling exportable in a whole-clip ONNX
         frames = masks.unsqueeze(2)
         if self.config.previous_frame:
             frames = torch.cat([frames, previous_observed(masks, valid).unsqueeze(2)], dim=2)
+        frames = frames.reshape(b * t, frame_channels(self.config), h, w)
+        if torch.onnx.is_in_onnx_export():  # a whole-clip export: boolean indexing loses the static sizes
+            return self.temporal(self.frame_encoder(frames).reshape(b, t, -1), valid)
         keep = valid.reshape(-1) > 0  # unobserved frames are never encoded (their embedding is zeroed anyway)
-        encoded = self.frame_encoder(frames.reshape(b * t, -1, h, w)[keep])
+        encoded = self.frame_encoder(frames[keep])
         emb = encoded.new_zeros(b * t, encoded.shape[-1]).index_copy(0, keep.nonzero()[:, 0], encoded)
         return self.temporal(emb.reshape(b, t, -1), valid)
 
