@@ -69,15 +69,15 @@ def run_no_ros(args, model: EstimatorModel) -> dict:
             image = FakeImage(mask)
             encode_time = [0.0]
 
-            def encode(binary):
+            def encode(binary, previous):
                 encode_start = time.perf_counter()
-                feature = model.encode(binary)
+                feature = model.encode(binary, previous)
                 encode_time[0] = time.perf_counter() - encode_start
                 return feature
 
             start = time.perf_counter()
             binary = image_to_mask(image, MAX_IMAGE_PIXELS)
-            for out in window.add(k * FRAME_NS, binary.shape, lambda: encode(binary)):
+            for out in window.add(k * FRAME_NS, binary, encode):
                 model_start = time.perf_counter()
                 model.predict(out.features, out.valid)
                 # as the node reports it: this frame's encoding + the temporal head (or the clip)

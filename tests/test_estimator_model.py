@@ -3,6 +3,7 @@ import math
 import types
 
 import numpy as np
+import onnx
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -149,6 +150,25 @@ def test_streaming_without_frame_encoder_names_it(tmp_path):
     head = build_streaming_model(tmp_path, name="lonely")
     (tmp_path / "lonely.frame.onnx").unlink()
     with pytest.raises(ModelError, match="lonely.frame.onnx"):
+        EstimatorModel.load(head)
+
+
+def _with_metadata(path, **entries):
+    model = onnx.load(str(path))
+    for key, value in entries.items():
+        model.metadata_props.add(key=key, value=value)
+    onnx.save(model, str(path))
+
+
+@pytest.mark.parametrize("inputs, message", [
+    ('["mask", "depth"]', r"ad.frame_inputs \['mask', 'depth'\] is not one this estimator knows"),
+    ('["mask", "previous_mask"]', r"s.frame.onnx takes 1 input channels, its metadata names \['mask', 'previous_mask'\]"),
+    ("mask", "ad.frame_inputs.*not valid JSON"),
+])
+def test_frame_inputs_the_encoder_does_not_match_are_refused(tmp_path, inputs, message):
+    head = build_streaming_model(tmp_path, name="s")
+    _with_metadata(head, **{"ad.frame_inputs": inputs})
+    with pytest.raises(ModelError, match=message):
         EstimatorModel.load(head)
 
 

@@ -73,7 +73,7 @@ def offline(model_path, masks, stamps, policy="episode", **kw):
     window = FrameWindow(0.025, 25, policy=policy, **kw)
     outputs = []
     for mask, stamp in zip(masks, stamps):
-        outputs += window.add(stamp, mask.shape, lambda mask=mask: model.encode(mask))
+        outputs += window.add(stamp, mask, model.encode)
     return [(out, model.predict(out.features, out.valid)) for out in outputs]
 
 

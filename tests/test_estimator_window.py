@@ -10,11 +10,15 @@ DT = 25_000_000  # ns
 SIZE = (128, 128)
 
 
+def frame(size=SIZE):
+    return np.zeros(size, np.uint8)
+
+
 def feed(window, stamps, size=SIZE):
     """Offer frames whose feature is their own stamp; returns every output."""
     outputs = []
     for s in stamps:
-        outputs += window.add(s, size, lambda s=s: np.array([float(s)]))
+        outputs += window.add(s, frame(size), lambda _frame, _previous, s=s: np.array([float(s)]))
     return outputs
 
 
@@ -103,13 +107,13 @@ def test_random_streams_keep_invariants(events, policy, every_n, min_frames):
             window.reset()
         stamp += step
 
-        def encode(s=stamp):
+        def encode(_frame, _previous, s=stamp):
             nonlocal calls
             calls += 1
             return np.array([float(s)])
 
         before = calls
-        for out in window.add(stamp, size, encode):
+        for out in window.add(stamp, frame(size), encode):
             assert 1 <= len(out.valid) <= 25 and out.valid.any()
             assert out.features.shape == (len(out.valid), 1)
             assert out.oldest_stamp_ns <= out.newest_stamp_ns
@@ -160,7 +164,7 @@ def test_duplicate_stamp_is_ignored():
     window = FrameWindow(0.025, 25)
     feed(window, [0, DT])
     calls = []
-    window.add(DT, SIZE, lambda: calls.append(1) or np.zeros(1, np.float32))
+    window.add(DT, frame(), lambda *_: calls.append(1) or np.zeros(1, np.float32))
     assert calls == [] and window.stats.ignored == 1
 
 
@@ -198,8 +202,29 @@ def test_encode_only_for_frames_that_land_in_slots():
     window = FrameWindow(0.025, 25, slot_tolerance=0.1)
     calls = []
     for s in range(0, 26 * DT, DT // 5):  # 200 fps
-        window.add(s, SIZE, lambda s=s: calls.append(s) or np.zeros(1, np.float32))
+        window.add(s, frame(), lambda *_, s=s: calls.append(s) or np.zeros(1, np.float32))
     assert calls == [k * DT for k in range(25)]
+
+
+def test_encode_gets_the_frame_of_the_latest_earlier_filled_slot():
+    """For frame encoders that also see the previous observed frame: None for an episode's first
+    frame, slots left empty are skipped, a restart starts again from None."""
+    window = FrameWindow(0.025, 25, slot_tolerance=0.4)
+    seen = []
+
+    def offer(stamp):
+        image = np.full(SIZE, stamp // DT, np.int64)  # each frame carries its slot number
+
+        def encode(current, previous):
+            seen.append((int(current[0, 0]), None if previous is None else int(previous[0, 0])))
+            return np.zeros(1, np.float32)
+
+        window.add(stamp, image, encode)
+
+    for k in (0, 1, 2, 5, 6):  # slots 3 and 4 stay empty
+        offer(k * DT)
+    offer(6 * DT + 10**9)  # a gap: a new episode
+    assert seen == [(0, None), (1, 0), (2, 1), (5, 2), (6, 5), (46, None)]
 
 
 def test_bad_configuration_is_refused():

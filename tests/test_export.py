@@ -2,6 +2,7 @@
 estimator's own wrapper (ad_estimator.model) runs the exported files."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 import torch
 
 from ad_estimator.model import REQUIRED_METADATA, EstimatorModel
+from ad_estimator.window import clip_output
 from ad_sim.materials import FAMILIES, PARAMETER_NAMES, denormalise
 from training import engine
 from training.data import resize_masks
@@ -17,9 +19,13 @@ from training.export import export_student, verify_export
 from training.models.student import build_student, student_preset
 
 
+KINDS = ["streaming", "streaming_previous_frame", "uniformer"]
+
+
 def _checkpoint(tmp_path, kind: str):
     torch.manual_seed(0)
-    config = student_preset(kind, "tiny", z_dim=32)
+    config = student_preset(kind.removesuffix("_previous_frame"), "tiny", z_dim=32)
+    config = dataclasses.replace(config, previous_frame=kind.endswith("_previous_frame"))
     model = build_student(config)
     # Non-trivial BatchNorm statistics, so that eval-mode export is really checked.
     model.train()
@@ -31,30 +37,37 @@ def _checkpoint(tmp_path, kind: str):
     return path, model.eval()
 
 
-@pytest.mark.parametrize("kind", ["streaming", "uniformer"])
+@pytest.mark.parametrize("kind", KINDS)
 def test_onnxruntime_matches_torch_and_metadata_is_complete(tmp_path, kind):
     ckpt, _ = _checkpoint(tmp_path, kind)
     out = tmp_path / "m" / "student.onnx"
     paths = export_student(ckpt, out)
     assert verify_export(ckpt, out, atol=1e-4) < 1e-4
-    expected_files = [out.with_name("student.frame.onnx"), out] if kind == "streaming" else [out]
+    streaming = kind.startswith("streaming")
+    expected_files = [out.with_name("student.frame.onnx"), out] if streaming else [out]
     assert paths == expected_files
     for path in paths:
         meta = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
         assert set(REQUIRED_METADATA) <= set(meta)
-        assert meta["ad.kind"] == ("streaming" if kind == "streaming" else "clip")
+        assert meta["ad.kind"] == ("streaming" if streaming else "clip")
         assert json.loads(meta["ad.class_names"]) == list(FAMILIES)
         assert json.loads(meta["ad.parameter_names"]) == list(PARAMETER_NAMES)
         assert json.loads(meta["ad.input_size"]) == [32, 32]
         assert meta["ad.frame_count"] == "25" and float(meta["ad.frame_interval"]) == 0.025
         assert json.loads(meta["ad.fixed_parameters"])["sand"] == {"youngs_modulus": 1e5, "poissons_ratio": 0.3}
-        if kind == "streaming":
+        if streaming:
             assert meta["ad.frame_encoder"] == "student.frame.onnx"
+        previous = kind.endswith("_previous_frame")
+        assert ("ad.frame_inputs" in meta) == previous
+        if previous:
+            assert json.loads(meta["ad.frame_inputs"]) == ["mask", "previous_mask"]
 
 
-@pytest.mark.parametrize("kind", ["streaming", "uniformer"])
+@pytest.mark.parametrize("kind", KINDS)
 def test_estimator_wrapper_runs_the_export_like_torch(tmp_path, kind):
-    """What the robot runs (resize, per-frame features, padded window) equals the torch model."""
+    """What the robot runs (resize, per-frame features on the window's slots, padded window) equals
+    the torch model, also with a dropped frame (the previous-frame encoder then sees the frame
+    before the gap, as in training)."""
     ckpt, model = _checkpoint(tmp_path, kind)
     out = tmp_path / "student.onnx"
     export_student(ckpt, out)
@@ -64,16 +77,19 @@ def test_estimator_wrapper_runs_the_export_like_torch(tmp_path, kind):
     for t in range(25):  # a blob that falls and flattens
         masks[t, 20 + 3 * t: 50 + 3 * t - t // 2, 40 - t: 80 + t] = 255
     masks[rng.random(masks.shape) < 0.01] = 255
-    for k in (25, 15):
-        features = np.stack([estimator.encode(m) for m in masks[:k]])
-        est = estimator.predict(features, np.ones(k, bool))
+    stamps = [t * 25_000_000 for t in range(25)]
+    for k, dropped in ((25, None), (15, None), (25, 7)):
+        kept = [t for t in range(k) if t != dropped]
+        out = clip_output([stamps[t] for t in kept], [masks[t] for t in kept], estimator.encode, 0.025, 25,
+                         slot_tolerance=0.4)  # a dropped frame leaves its slot empty
+        est = estimator.predict(out.features, out.valid)
         x = torch.zeros(1, 25, 32, 32)
-        x[0, :k] = torch.from_numpy(resize_masks(masks[:k], (32, 32)))
         valid = torch.zeros(1, 25)
-        valid[0, :k] = 1
+        x[0, kept] = torch.from_numpy(resize_masks(masks[kept], (32, 32)))
+        valid[0, kept] = 1
         with torch.no_grad():
             ref = model(x, valid)
         np.testing.assert_allclose(est.probabilities, torch.softmax(ref["logits"][0], -1).numpy(), atol=1e-4)
         expected = [denormalise(n, float(ref["params"][0, i].clamp(0, 1))) for i, n in enumerate(PARAMETER_NAMES)]
         np.testing.assert_allclose(est.raw_parameters, expected, rtol=1e-3)
-        assert est.frames_used == k
+        assert est.frames_used == len(kept) and out.valid.sum() == len(kept)

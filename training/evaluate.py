@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 from ad_estimator.metrics import TEMPORAL_OOD_FRAMES, FrameCounts, Predictions, format_table, json_text, write_report
 from ad_estimator.model import EstimatorModel
+from ad_estimator.window import clip_output
 from ad_sim.materials import FRAME_COUNT
 from training import data
 
@@ -29,7 +30,9 @@ def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORE
     probs = {k: [] for k in frames}
     params = {k: [] for k in frames}
     for j in tqdm(videos, desc="evaluate", unit="clip", disable=not progress):
-        features = np.stack([model.encode(frame) for frame in ds.video(int(j))])
+        video = list(ds.video(int(j)))  # frames on the model's interval, in order
+        features = clip_output([0] * len(video), video, model.encode, model.info.frame_interval,
+                               model.info.frame_count).features
         for k in frames:
             est = model.predict(features[:k], np.ones(k, bool))
             probs[k].append(est.probabilities)

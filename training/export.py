@@ -1,7 +1,8 @@
 """Export a student checkpoint to ONNX with the metadata of docs/architecture.md.
 
-streaming: <name>.frame.onnx (frame (B,1,H,W) -> embedding (B,D)) and <name>.onnx (embeddings
-(B,T,D), valid (B,T) -> logits, params, params_logvar). clip: <name>.onnx (masks (B,T,H,W),
+streaming: <name>.frame.onnx (frame (B,C,H,W) -> embedding (B,D); C is 2 when channel 1 holds the
+previous observed mask, see ad.frame_inputs) and <name>.onnx (embeddings (B,T,D), valid (B,T) ->
+logits, params, params_logvar). clip: <name>.onnx (masks (B,T,H,W),
 valid (B,T) -> the same outputs; fewer than 25 frames are zero-padded inside the graph).
 """
 from __future__ import annotations
@@ -27,6 +28,7 @@ from ad_sim.materials import (
     PARAMETER_RANGES,
 )
 from training.evaluate import metrics_path
+from training.models.student import frame_channels, previous_observed
 from training.train_student import load_student
 
 OUTPUTS = ["logits", "params", "params_logvar"]
@@ -90,12 +92,8 @@ def frame_encoder_path(onnx_path: Path) -> Path:
     return onnx_path.with_name(onnx_path.stem + ".frame.onnx")
 
 
-def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None = None,
-                   whole_clip: bool = False) -> list[Path]:
-    """Writes the ONNX file(s) for a student checkpoint; `out` is <name>.onnx. Returns the paths.
-
-    `whole_clip` exports a streaming student as one clip model (masks in, estimate out), which the
-    estimator runs like the UniFormer: every frame is encoded again for each estimate."""
+def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None = None) -> list[Path]:
+    """Writes the ONNX file(s) for a student checkpoint; `out` is <name>.onnx. Returns the paths."""
     model, meta = load_student(checkpoint)
     model = model.float().eval()
     config = model.config
@@ -107,12 +105,10 @@ def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None
     extra = {"ad.training": json.dumps({k: meta[k] for k in ("size", "ablation", "seed") if k in meta})}
     written = []
     with torch.no_grad():
-        if config.kind == "streaming" and config.previous_frame and not whole_clip:
-            raise ValueError(f"{checkpoint}: the estimator cannot stream a --previous-frame student frame by frame "
-                             "yet; export it with --whole-clip")
-        if config.kind == "streaming" and not whole_clip:
+        if config.kind == "streaming":
             frame_path = frame_encoder_path(out)
-            _export(model.frame_encoder, (torch.zeros(2, 1, h, w),), frame_path, ["frame"], ["embedding"],
+            channels = frame_channels(config)
+            _export(model.frame_encoder, (torch.zeros(2, channels, h, w),), frame_path, ["frame"], ["embedding"],
                     {"frame": {0: "batch"}, "embedding": {0: "batch"}})
             d = config.embed_dim
             _export(_Outputs(model.temporal), (torch.zeros(2, FRAME_COUNT, d), torch.ones(2, FRAME_COUNT)), out,
@@ -120,6 +116,8 @@ def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None
                     {"embeddings": {0: "batch", 1: "time"}, "valid": {0: "batch", 1: "time"},
                      **{o: {0: "batch"} for o in OUTPUTS}})
             extra.update({"ad.frame_encoder": frame_path.name, "ad.embedding_dim": str(d)})
+            if config.previous_frame:  # channel 1 holds the previous observed mask (ad_estimator.model)
+                extra["ad.frame_inputs"] = json.dumps(["mask", "previous_mask"])
             meta_all = metadata(model_id, "streaming", (h, w), extra)
             _attach(frame_path, meta_all)
             written.append(frame_path)
@@ -157,7 +155,11 @@ def verify_export(checkpoint: str | Path, onnx_path: str | Path, seed: int = 0, 
     session = ort.InferenceSession(str(onnx_path), opts)
     if "embeddings" in {i.name for i in session.get_inputs()}:  # streaming: frame encoder + temporal head
         frame = ort.InferenceSession(str(frame_encoder_path(onnx_path)), opts)
-        emb = frame.run(None, {"frame": masks.reshape(-1, 1, h, w)})[0].reshape(2, FRAME_COUNT, -1)
+        frames = masks[:, :, None]
+        if model.config.previous_frame:
+            previous = previous_observed(torch.from_numpy(masks), torch.from_numpy(valid)).numpy()
+            frames = np.concatenate([frames, previous[:, :, None]], axis=2)
+        emb = frame.run(None, {"frame": frames.reshape(2 * FRAME_COUNT, -1, h, w)})[0].reshape(2, FRAME_COUNT, -1)
         got = session.run(OUTPUTS, {"embeddings": emb, "valid": valid})
     else:
         got = session.run(OUTPUTS, {"masks": masks, "valid": valid})
@@ -175,13 +177,11 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--out", required=True, help="output <name>.onnx")
     p.add_argument("--model-id", help="ad.model_id (default: <name>-<kind>-<ablation>-<weights hash>)")
     p.add_argument("--seed", type=int, default=0, help="seed of the verification input")
-    p.add_argument("--whole-clip", action="store_true",
-                   help="export a streaming student as one clip model (no per-frame encoder file)")
     return p
 
 
 def run(args) -> list[Path]:
-    paths = export_student(args.checkpoint, args.out, args.model_id, args.whole_clip)
+    paths = export_student(args.checkpoint, args.out, args.model_id)
     err = verify_export(args.checkpoint, args.out, args.seed)
     print(f"exported {', '.join(map(str, paths))}; onnxruntime vs torch max error {err:.2e}")
     return paths

@@ -125,8 +125,7 @@ class FrameEncoder(nn.Module):
             layers += [_conv_bn(cin, cout, 2), _conv_bn(cout, cout, 1)] if stage == last else [_conv_bn(cin, cout, 2)]
             cin = cout
         self.features = nn.Sequential(*layers)
-        # A fixed kernel (the map is a multiple of pool): exports even where the map's size is not traced.
-        self.pool = nn.AvgPool2d((int(side[0]) // config.pool, int(side[1]) // config.pool))
+        self.pool = nn.AdaptiveAvgPool2d(config.pool)
         self.moments = config.moments
         extra = MOMENT_COUNT if config.moments else 0
         h, w = config.input_size
@@ -199,14 +198,11 @@ class StreamingStudent(nn.Module):
 
     def forward(self, masks: torch.Tensor, valid: torch.Tensor) -> dict[str, torch.Tensor]:
         """masks (B, T, H, W) in [0, 1], valid (B, T)."""
-        b, t = masks.shape[:2]
-        h, w = self.config.input_size  # static sizes keep the pooling exportable in a whole-clip ONNX
+        b, t, h, w = masks.shape
         frames = masks.unsqueeze(2)
         if self.config.previous_frame:
             frames = torch.cat([frames, previous_observed(masks, valid).unsqueeze(2)], dim=2)
         frames = frames.reshape(b * t, frame_channels(self.config), h, w)
-        if torch.onnx.is_in_onnx_export():  # a whole-clip export: boolean indexing loses the static sizes
-            return self.temporal(self.frame_encoder(frames).reshape(b, t, -1), valid)
         keep = valid.reshape(-1) > 0  # unobserved frames are never encoded (their embedding is zeroed anyway)
         encoded = self.frame_encoder(frames[keep])
         emb = encoded.new_zeros(b * t, encoded.shape[-1]).index_copy(0, keep.nonzero()[:, 0], encoded)

@@ -119,12 +119,13 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
             for instance, frames in episode_frames(bag, mask_topic, recover):
                 # Every prefix length reuses the episode's conversions and frame encodings.
                 masks = [image_to_mask(image, MAX_IMAGE_PIXELS) for _, image in frames]
-                features: dict[int, np.ndarray] = {}
+                features: dict[tuple[int, int], np.ndarray] = {}
 
-                def encode(mask: np.ndarray) -> np.ndarray:
-                    if id(mask) not in features:
-                        features[id(mask)] = model.encode(mask)
-                    return features[id(mask)]
+                def encode(mask: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+                    key = (id(mask), id(previous))
+                    if key not in features:
+                        features[key] = model.encode(mask, previous)
+                    return features[key]
 
                 for k in frame_counts:
                     prediction = predict_episode(model, bag, instance, frames, k, masks=masks, encode=encode)

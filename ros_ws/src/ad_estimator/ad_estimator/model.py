@@ -7,7 +7,8 @@ opencv (never torch). Two kinds of model:
   A frame's feature is the resized mask itself.
 - ``streaming``: ``<name>.frame.onnx`` maps one frame to an embedding, ``<name>.onnx`` (the
   temporal head) maps the embeddings of a window to the outputs. A frame's feature is its
-  embedding, so a new frame costs one frame encoding plus one run of the small head.
+  embedding, so a new frame costs one frame encoding plus one run of the small head. A frame
+  encoder may also take the previous observed frame (``ad.frame_inputs``), stacked as channels.
 
 Callers (node, evaluate, service, benchmark) all go ``encode`` per frame, keep the features on
 the model's frame slots (``ad_estimator.window``), then ``predict``.
@@ -37,6 +38,8 @@ REQUIRED_METADATA = (
     "ad.kind",
 )
 KINDS = ("clip", "streaming")
+# What a streaming frame encoder's input channels hold, in order (``ad.frame_inputs``; absent: the mask only).
+FRAME_INPUTS = ("mask", "previous_mask")
 # The bundled default model, installed with the package (package data, found next to this module).
 BUNDLED_MODEL = Path(__file__).resolve().parent / "models" / "default.onnx"
 
@@ -80,6 +83,11 @@ class ModelInfo:
     frame_count: int
     input_size: tuple[int, int]  # (H, W)
     frame_encoder: Path | None  # streaming models only
+    frame_inputs: tuple[str, ...] = ("mask",)  # input channels of the frame encoder
+
+    @property
+    def uses_previous_frame(self) -> bool:
+        return "previous_mask" in self.frame_inputs
 
 
 @dataclass
@@ -140,12 +148,18 @@ def parse_metadata(meta: dict[str, str], path: Path) -> ModelInfo:
     if len(input_size) != 2 or min(input_size) <= 0 or frame_count <= 0 or not frame_interval > 0:
         raise ModelError(f"{path}: bad input_size/frame_count/frame_interval metadata")
     frame_encoder = None
+    frame_inputs = ("mask",)
     if kind == "streaming":
         if "ad.frame_encoder" not in meta:
             raise ModelError(f"{path}: streaming model without ad.frame_encoder metadata")
         frame_encoder = path.parent / meta["ad.frame_encoder"]
+        if "ad.frame_inputs" in meta:
+            frame_inputs = tuple(_json(meta, "ad.frame_inputs", path))
+            if frame_inputs not in (FRAME_INPUTS[:1], FRAME_INPUTS):
+                raise ModelError(f"{path}: ad.frame_inputs {list(frame_inputs)} is not one this estimator knows "
+                                 f"({list(FRAME_INPUTS[:1])} or {list(FRAME_INPUTS)}); update ad_estimator or re-export")
     return ModelInfo(path, meta["ad.model_id"], kind, class_names, parameter_names, ranges, family_parameters,
-                     fixed, frame_interval, frame_count, input_size, frame_encoder)
+                     fixed, frame_interval, frame_count, input_size, frame_encoder, frame_inputs)
 
 
 # Execution providers by short name. CPU is the robot's default: for a model this small, copying
@@ -199,7 +213,8 @@ class EstimatorModel:
         if frame_session is None:
             self.feature_shape: tuple[int, ...] = (h, w)
         else:
-            embedding = frame_session.run(["embedding"], {"frame": np.zeros((1, 1, h, w), np.float32)})[0]
+            frame = np.zeros((1, len(info.frame_inputs), h, w), np.float32)
+            embedding = frame_session.run(["embedding"], {"frame": frame})[0]
             self.feature_shape = tuple(embedding.shape[1:])
         # Warm-up run: the first onnxruntime call allocates; keep that out of the first estimate's latency.
         self.predict(np.zeros((1, *self.feature_shape), np.float32), np.ones(1, bool))
@@ -223,6 +238,10 @@ class EstimatorModel:
         _require_io(session, path, ("embeddings", "valid"), ("logits", "params"))
         frame_session = _session(info.frame_encoder, threads, provider)
         _require_io(frame_session, info.frame_encoder, ("frame",), ("embedding",))
+        channels = frame_session.get_inputs()[0].shape[1]
+        if channels != len(info.frame_inputs):
+            raise ModelError(f"{info.frame_encoder} takes {channels} input channels, its metadata names "
+                             f"{list(info.frame_inputs)}; re-export the model")
         return cls(info, session, frame_session)
 
     @property
@@ -238,12 +257,18 @@ class EstimatorModel:
             mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_AREA)
         return mask.astype(np.float32) * np.float32(1.0 / 255.0)
 
-    def encode(self, mask: np.ndarray) -> np.ndarray:
-        """Feature of one frame: the prepared mask (clip models) or its embedding (streaming models)."""
+    def encode(self, mask: np.ndarray, previous: np.ndarray | None = None) -> np.ndarray:
+        """Feature of one frame: the prepared mask (clip models) or its embedding (streaming models).
+
+        ``previous``: the episode's previous observed mask (None for its first frame, which then
+        stands in for it, as in training); only models with ``uses_previous_frame`` read it."""
         frame = self.prepare(mask)
         if self._frame_session is None:
             return frame
-        return self._frame_session.run(["embedding"], {"frame": frame[None, None]})[0][0]
+        channels = [frame]
+        if self.info.uses_previous_frame:
+            channels.append(frame if previous is None else self.prepare(previous))
+        return self._frame_session.run(["embedding"], {"frame": np.stack(channels)[None]})[0][0]
 
     def predict(self, features: np.ndarray, valid: np.ndarray) -> Estimate:
         """Estimate from per-slot features (T <= frame_count, oldest first) and their validity."""

@@ -206,13 +206,13 @@ class EstimatorNode(Node):
         stamp = stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
         encode_time = [0.0]
 
-        def encode():
+        def encode(frame, previous):
             start = time.perf_counter()
-            feature = self.model.encode(mask)
+            feature = self.model.encode(frame, previous)
             encode_time[0] = time.perf_counter() - start
             return feature
 
-        outputs = self.window.add(stamp, mask.shape, encode)
+        outputs = self.window.add(stamp, mask, encode)
         self._count("processed")
         return [self._publish(out, msg.header.frame_id, arrival, encode_time[0]) for out in outputs]
 

@@ -15,6 +15,11 @@ estimate at 25 frames is due the moment the frame for the last slot arrives. ``f
 frames are coming: end of stream, idle input) settles the slots up to the one nearest to the last
 frame, so a clip of K frames on the interval gives exactly K slots.
 
+Frames. The caller offers each frame with an ``encode(frame, previous)`` function, called once if
+the frame lands in a slot. ``previous`` is the frame in the latest filled slot before it in the
+same episode (None for the episode's first), for models whose frame encoder also sees the previous
+observed frame; others ignore it. The window keeps the episode's placed frames for that.
+
 Episodes. The window restarts (its next frame becomes frame 0) on a stamp gap larger than
 ``gap_threshold`` seconds, on stamps going backwards, on a change of image size and on
 ``reset()``. A frame with the same stamp as the previous one is a duplicate and ignored. The
@@ -38,6 +43,9 @@ DEFAULT_GAP_THRESHOLD = 0.3  # s; episodes in a simulator stream are > 0.5 s apa
 DEFAULT_SLOT_TOLERANCE = 1.0  # frame intervals
 # Stamps closer than this to a slot time count as at it (float stamps such as 1.5 + 3 * 0.025).
 SETTLE_EPSILON_NS = 1_000
+
+# encode(frame, previous frame of the episode or None) -> the frame's feature
+Encode = Callable[[np.ndarray, "np.ndarray | None"], np.ndarray]
 
 RESTART_FIRST = "first"
 RESTART_GAP = "gap"
@@ -66,6 +74,7 @@ class _Slot:
     stamp_ns: int
     error_ns: int
     feature: np.ndarray
+    frame: np.ndarray
 
 
 @dataclass
@@ -119,13 +128,14 @@ class FrameWindow:
         self.reset()
         return outputs
 
-    def add(self, stamp_ns: int, size: tuple, encode: Callable[[], np.ndarray]) -> list[WindowOutput]:
-        """Offer one frame (stamp in ns, image size); ``encode()`` is called only if the frame lands in a slot.
+    def add(self, stamp_ns: int, frame: np.ndarray, encode: Encode) -> list[WindowOutput]:
+        """Offer one frame (stamp in ns); ``encode(frame, previous)`` is called only if it lands in a slot.
 
         Returns the estimates due now: usually none; the previous episode's last one when this frame
         restarts the window (see flush); at most one for the current episode.
         """
         self.stats.frames += 1
+        size = frame.shape
         outputs: list[WindowOutput] = []
         if self._start_ns is None:
             self.stats.restarts[RESTART_FIRST] += 1
@@ -144,13 +154,13 @@ class FrameWindow:
         if self._done:
             self.stats.ignored += 1
             return outputs
-        self._place(stamp_ns, encode)
+        self._place(stamp_ns, frame, encode)
         offset = stamp_ns - self._start_ns + SETTLE_EPSILON_NS
         self._settled = min(self.frame_count, max(self._settled, offset // self.interval_ns + 1))
         outputs.extend(self._due(final=False))
         return outputs
 
-    def _place(self, stamp_ns: int, encode: Callable[[], np.ndarray]) -> None:
+    def _place(self, stamp_ns: int, frame: np.ndarray, encode: Encode) -> None:
         rel = stamp_ns - self._start_ns
         first = max(self._settled, -((self.tolerance_ns - rel) // self.interval_ns))  # ceil((rel - tol) / dt)
         last = min(self.frame_count - 1, (rel + self.tolerance_ns) // self.interval_ns)
@@ -160,8 +170,9 @@ class FrameWindow:
             slot = self._slots[k]
             if slot is None or error < slot.error_ns:
                 if feature is None:
-                    feature = encode()
-                self._slots[k] = _Slot(stamp_ns, error, feature)
+                    previous = next((s.frame for s in reversed(self._slots[:k]) if s is not None), None)
+                    feature = encode(frame, previous)
+                self._slots[k] = _Slot(stamp_ns, error, feature, frame)
         if feature is None:
             self.stats.ignored += 1
 
@@ -231,7 +242,7 @@ def clip_stamps(stamps_ns: list[int], frame_interval: float) -> list[int]:
     return list(stamps_ns)
 
 
-def clip_output(stamps_ns: list[int], masks: list[np.ndarray], encode: Callable[[np.ndarray], np.ndarray],
+def clip_output(stamps_ns: list[int], masks: list[np.ndarray], encode: Encode,
                 frame_interval: float, frame_count: int,
                 slot_tolerance: float = DEFAULT_SLOT_TOLERANCE) -> WindowOutput | None:
     """The slots of a whole clip (oldest first), as one episode: what the stream would give at its
@@ -244,6 +255,6 @@ def clip_output(stamps_ns: list[int], masks: list[np.ndarray], encode: Callable[
     for stamp, mask in zip(stamps_ns, masks):
         if mask.shape != masks[0].shape:
             raise ValueError("clip frames must all have the same size")
-        outputs += window.add(stamp, mask.shape, lambda mask=mask: encode(mask))
+        outputs += window.add(stamp, mask, encode)
     outputs += window.flush()
     return outputs[-1] if outputs else None
