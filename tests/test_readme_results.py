@@ -11,27 +11,36 @@ from ad_estimator.metrics import format_table
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results" / "paper"
 
-SHIPPED = "**shipped**: streaming student, full, 20 epochs, RegL1 weight 1.0"
+SHIPPED = "**shipped**: streaming student, previous frame as a second input channel, full, 20 epochs"
+PREVIOUS = "previous shipped: the same with one input channel (the current mask only)"
+NONE_20 = "ablation of the previous shipped: without alignment (task loss only), 20 epochs"
+NONE_10 = "ablation of the previous shipped: without alignment (task loss only), 10 epochs"
+ALIGN_ONLY = "ablation of the previous shipped: alignment only (teacher's frozen predictor), 10 epochs"
+ALIGN_1 = "variant of the previous shipped: alignment weight 1.0 instead of 0.1, 20 epochs"
+RECIPE = "previous recipe (SPEC weights): streaming, full, 20 epochs"
 # README section -> {row label (first cell) -> metrics file}
 ROWS = {
     "### Unseen objects": {
-        SHIPPED: "streaming_full20_unseen/metrics.json",
-        "previous recipe (SPEC weights): streaming, full, 20 epochs": "experiments/previous_shipped_full20_unseen.json",
-        "ablation: streaming, without alignment (task loss only), 10 epochs": "ablation_none_10ep_unseen.json",
-        "ablation: streaming, alignment only (teacher's frozen predictor), 10 epochs": "ablation_align_only_10ep_unseen.json",
-        "variant: the shipped recipe with alignment weight 1.0 instead of 0.1, 20 epochs":
-            "experiments/align_weight1_full20_unseen.json",
+        SHIPPED: "streaming_previous_frame20_unseen/metrics.json",
+        PREVIOUS: "streaming_full20_unseen/metrics.json",
+        NONE_20: "ablation_none_20ep_unseen.json",
+        NONE_10: "ablation_none_10ep_unseen.json",
+        ALIGN_ONLY: "ablation_align_only_10ep_unseen.json",
+        ALIGN_1: "experiments/align_weight1_full20_unseen.json",
+        RECIPE: "experiments/previous_shipped_full20_unseen.json",
         "UniFormer-style clip student, full, 2 epochs (paper preset)": "uniformer_full2_unseen/metrics.json",
     },
     "### Seen objects": {
-        SHIPPED: "streaming_full20_seen/metrics.json",
-        "previous recipe (SPEC weights): streaming, full, 20 epochs": "experiments/previous_shipped_full20_seen.json",
-        "ablation: streaming, without alignment (task loss only), 10 epochs": "ablation_none_10ep_seen.json",
-        "ablation: streaming, alignment only (teacher's frozen predictor), 10 epochs": "ablation_align_only_10ep_seen.json",
-        "variant: the shipped recipe with alignment weight 1.0 instead of 0.1, 20 epochs":
-            "experiments/align_weight1_full20_seen.json",
+        SHIPPED: "streaming_previous_frame20_seen/metrics.json",
+        PREVIOUS: "streaming_full20_seen/metrics.json",
+        NONE_20: "ablation_none_20ep_seen.json",
+        NONE_10: "ablation_none_10ep_seen.json",
+        ALIGN_ONLY: "ablation_align_only_10ep_seen.json",
+        ALIGN_1: "experiments/align_weight1_full20_seen.json",
+        RECIPE: "experiments/previous_shipped_full20_seen.json",
     },
 }
+SHIPPED_REPORTS = "streaming_previous_frame20_{split}"
 
 
 def cells(line: str) -> list[str]:
@@ -70,7 +79,7 @@ def test_readme_tables_match_the_metrics_files(heading):
 
 def test_readme_temporal_ood_table_matches_the_shipped_model():
     rows = table_rows((ROOT / "README.md").read_text(), "### Temporal OOD")
-    path = RESULTS / "streaming_full20_unseen" / "metrics.json"
+    path = RESULTS / SHIPPED_REPORTS.format(split="unseen") / "metrics.json"
     frames = [label for label in rows if re.fullmatch(r"\d+", label)]
     assert frames, "the temporal-OOD table has no rows"
     for k in frames:
@@ -83,7 +92,7 @@ def test_the_shipped_reports_are_the_bundled_models(split):
     next to the bundled model is the same, and the model card names the bundled model id."""
     models = ROOT / "ros_ws" / "src" / "ad_estimator" / "ad_estimator" / "models"
     bundled = json.loads((models / "default.metrics.json").read_text())
-    report = json.loads((RESULTS / f"streaming_full20_{split}" / "metrics.json").read_text())
+    report = json.loads((RESULTS / SHIPPED_REPORTS.format(split=split) / "metrics.json").read_text())
     assert bundled["evaluation"][split]["full"] == report["frames"]["25"]
     assert f"`{bundled['model_id']}`" in (models / "MODEL_CARD.md").read_text()
 
@@ -109,3 +118,21 @@ def test_experiments_section_4_matches_the_metrics_files():
     for label, file in SECTION_4.items():
         assert label in rows, f"experiments section 4 lost its row {label!r}"
         assert rows[label] == measured(RESULTS / file), f"experiments section 4 row {label!r} differs from {file}"
+
+
+# docs/results/paper/experiments/README.md, section 5: row label -> metrics file
+SECTION_5 = {
+    "unseen, `pf` (**shipped now**)": "streaming_previous_frame20_unseen/metrics.json",
+    "unseen, `w1` (`full`, one input channel)": "streaming_full20_unseen/metrics.json",
+    "unseen, `none20`": "ablation_none_20ep_unseen.json",
+    "seen, `pf`": "streaming_previous_frame20_seen/metrics.json",
+    "seen, `w1`": "streaming_full20_seen/metrics.json",
+    "seen, `none20`": "ablation_none_20ep_seen.json",
+}
+
+
+def test_experiments_section_5_matches_the_metrics_files():
+    rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), "## 5. ")
+    for label, file in SECTION_5.items():
+        assert label in rows, f"experiments section 5 lost its row {label!r}"
+        assert rows[label] == measured(RESULTS / file), f"experiments section 5 row {label!r} differs from {file}"
