@@ -75,8 +75,12 @@ def measure(model: torch.nn.Module, weights: str, args, device: torch.device) ->
         if model.config.kind == "streaming":
             # Steady state: the window's embeddings stay on the GPU; a new frame is encoded and the
             # temporal head reads the last 25.
-            window = model.frame_encoder(to_device(clips[0], device)[:, None]).unsqueeze(0)
-            frame = clips[0, -1][None, None]
+            # (A previous-frame student's encoder also reads the frame before, as a second channel.)
+            frames = clips[0][:, None]
+            if model.config.previous_frame:
+                frames = np.concatenate([frames, np.concatenate([clips[0][:1], clips[0][:-1]])[:, None]], axis=1)
+            window = model.frame_encoder(to_device(frames, device)).unsqueeze(0)
+            frame = frames[-1:]
 
             def step():
                 nonlocal window

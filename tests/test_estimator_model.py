@@ -164,6 +164,8 @@ def _with_metadata(path, **entries):
     ('["mask", "depth"]', r"ad.frame_inputs \['mask', 'depth'\] is not one this estimator knows"),
     ('["mask", "previous_mask"]', r"s.frame.onnx takes 1 input channels, its metadata names \['mask', 'previous_mask'\]"),
     ("mask", "ad.frame_inputs.*not valid JSON"),
+    ('{"mask": 1}', r"ad.frame_inputs \[\{'mask': 1\}\] is not one this estimator knows"),
+    ("2", r"ad.frame_inputs \[2\] is not one this estimator knows"),
 ])
 def test_frame_inputs_the_encoder_does_not_match_are_refused(tmp_path, inputs, message):
     head = build_streaming_model(tmp_path, name="s")

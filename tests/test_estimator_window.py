@@ -227,6 +227,18 @@ def test_encode_gets_the_frame_of_the_latest_earlier_filled_slot():
     assert seen == [(0, None), (1, 0), (2, 1), (5, 2), (6, 5), (46, None)]
 
 
+def test_the_window_keeps_only_frames_a_later_frame_may_need():
+    window = FrameWindow(0.025, 25)
+    for k in range(10):
+        window.add(k * DT, frame(), lambda *_: np.zeros(1, np.float32))
+    kept = [k for k, slot in enumerate(window._slots) if slot is not None and slot.frame is not None]
+    # Slot 9 is the latest settled one; slot 10 is not settled yet and holds frame 9 too (tolerance 1 dt).
+    assert kept == [9, 10]
+    for k in range(10, 25):
+        window.add(k * DT, frame(), lambda *_: np.zeros(1, np.float32))
+    assert all(slot.frame is None for slot in window._slots)  # complete: no frame can come in any more
+
+
 def test_bad_configuration_is_refused():
     with pytest.raises(ValueError, match="policy"):
         FrameWindow(0.025, 25, policy="sometimes")

@@ -1,6 +1,7 @@
 """benchmarks/gpu_inference.py runs end to end (on the CPU here) and reports every figure it
 promises; the figures themselves are measured on the GPU machine, not asserted here."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -37,8 +38,10 @@ def test_reports_per_frame_per_instance_and_throughput(tmp_path):
     assert figures["setup"]["size"] == "tiny"
 
 
-def test_times_a_trained_checkpoint_when_given(tmp_path):
+@pytest.mark.parametrize("previous_frame", [False, True])
+def test_times_a_trained_checkpoint_when_given(tmp_path, previous_frame):
     config = student_preset("streaming", "tiny", TEACHER_PRESETS["tiny"].z_dim)
+    config = dataclasses.replace(config, previous_frame=previous_frame)  # the bundled model's encoder has 2 inputs
     model = build_student(config)
     checkpoint = tmp_path / "student.pt"
     save_checkpoint(checkpoint, {"model": model.state_dict(), "epoch": 1,
@@ -49,6 +52,7 @@ def test_times_a_trained_checkpoint_when_given(tmp_path):
     figures = json.loads(result.stdout)
     assert figures["streaming"]["weights"] == str(checkpoint)
     assert figures["streaming"]["parameters"] == sum(p.numel() for p in model.parameters())
+    assert figures["streaming"]["per_frame"]["p50_ms"] > 0
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")

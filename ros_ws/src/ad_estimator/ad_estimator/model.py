@@ -154,7 +154,8 @@ def parse_metadata(meta: dict[str, str], path: Path) -> ModelInfo:
             raise ModelError(f"{path}: streaming model without ad.frame_encoder metadata")
         frame_encoder = path.parent / meta["ad.frame_encoder"]
         if "ad.frame_inputs" in meta:
-            frame_inputs = tuple(_json(meta, "ad.frame_inputs", path))
+            listed = _json(meta, "ad.frame_inputs", path)
+            frame_inputs = tuple(listed) if isinstance(listed, list) else (listed,)
             if frame_inputs not in (FRAME_INPUTS[:1], FRAME_INPUTS):
                 raise ModelError(f"{path}: ad.frame_inputs {list(frame_inputs)} is not one this estimator knows "
                                  f"({list(FRAME_INPUTS[:1])} or {list(FRAME_INPUTS)}); update ad_estimator or re-export")
@@ -238,8 +239,9 @@ class EstimatorModel:
         _require_io(session, path, ("embeddings", "valid"), ("logits", "params"))
         frame_session = _session(info.frame_encoder, threads, provider)
         _require_io(frame_session, info.frame_encoder, ("frame",), ("embedding",))
-        channels = frame_session.get_inputs()[0].shape[1]
-        if channels != len(info.frame_inputs):
+        shape = next(i.shape for i in frame_session.get_inputs() if i.name == "frame")
+        channels = shape[1] if len(shape) == 4 else None  # (B, C, H, W); a symbolic C is not checked here
+        if isinstance(channels, int) and channels != len(info.frame_inputs):
             raise ModelError(f"{info.frame_encoder} takes {channels} input channels, its metadata names "
                              f"{list(info.frame_inputs)}; re-export the model")
         return cls(info, session, frame_session)

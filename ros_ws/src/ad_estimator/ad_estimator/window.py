@@ -18,7 +18,9 @@ frame, so a clip of K frames on the interval gives exactly K slots.
 Frames. The caller offers each frame with an ``encode(frame, previous)`` function, called once if
 the frame lands in a slot. ``previous`` is the frame in the latest filled slot before it in the
 same episode (None for the episode's first), for models whose frame encoder also sees the previous
-observed frame; others ignore it. The window keeps the episode's placed frames for that.
+observed frame; others ignore it. A frame that fills several slots (a slow camera, a dropped
+frame) is encoded once, with the frame before it: the change between two frames really observed.
+The window keeps only the frames a later frame can still need as its previous one.
 
 Episodes. The window restarts (its next frame becomes frame 0) on a stamp gap larger than
 ``gap_threshold`` seconds, on stamps going backwards, on a change of image size and on
@@ -74,7 +76,7 @@ class _Slot:
     stamp_ns: int
     error_ns: int
     feature: np.ndarray
-    frame: np.ndarray
+    frame: np.ndarray | None  # None once no later frame can need it as its previous one
 
 
 @dataclass
@@ -157,6 +159,7 @@ class FrameWindow:
         self._place(stamp_ns, frame, encode)
         offset = stamp_ns - self._start_ns + SETTLE_EPSILON_NS
         self._settled = min(self.frame_count, max(self._settled, offset // self.interval_ns + 1))
+        self._forget_frames()
         outputs.extend(self._due(final=False))
         return outputs
 
@@ -175,6 +178,16 @@ class FrameWindow:
                 self._slots[k] = _Slot(stamp_ns, error, feature, frame)
         if feature is None:
             self.stats.ignored += 1
+
+    def _forget_frames(self) -> None:
+        """Later frames land at or after the first unsettled slot, so of the settled slots only the
+        latest filled one can still be a previous frame; none can once the episode is complete."""
+        settled = self._slots[:self._settled]
+        complete = self._settled == self.frame_count
+        latest = None if complete else next((s for s in reversed(settled) if s is not None), None)
+        for slot in settled:
+            if slot is not None and slot is not latest:
+                slot.frame = None
 
     def flush(self) -> list[WindowOutput]:
         """No more frames are coming for now: settle up to the last frame's slot, emit what is then due.
