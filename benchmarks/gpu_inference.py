@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator")]
 
 from common import falling_disc_clips, percentiles  # noqa: E402  (benchmarks/, the script's folder)
-from training.models.student import FRAME_COUNT, build_student, student_preset  # noqa: E402
+from training.models.student import FRAME_COUNT, build_student, frame_encoder_input, student_preset  # noqa: E402
 from training.models.teacher import TEACHER_PRESETS  # noqa: E402
 
 
@@ -75,12 +75,9 @@ def measure(model: torch.nn.Module, weights: str, args, device: torch.device) ->
         if model.config.kind == "streaming":
             # Steady state: the window's embeddings stay on the GPU; a new frame is encoded and the
             # temporal head reads the last 25.
-            # (A previous-frame student's encoder also reads the frame before, as a second channel.)
-            frames = clips[0][:, None]
-            if model.config.previous_frame:
-                frames = np.concatenate([frames, np.concatenate([clips[0][:1], clips[0][:-1]])[:, None]], axis=1)
-            window = model.frame_encoder(to_device(frames, device)).unsqueeze(0)
-            frame = frames[-1:]
+            frames = frame_encoder_input(model.config, to_device(clips[:1], device), valid)[0]  # (25, C, H, W)
+            window = model.frame_encoder(frames).unsqueeze(0)
+            frame = frames[-1:].mul(255.0).to(torch.uint8).cpu().numpy()  # a host mask, as a camera gives it
 
             def step():
                 nonlocal window

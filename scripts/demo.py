@@ -155,7 +155,6 @@ def main(argv=None) -> int:
     listener = Listener(node)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
 

@@ -28,7 +28,7 @@ from ad_sim.materials import (
     PARAMETER_RANGES,
 )
 from training.evaluate import metrics_path
-from training.models.student import frame_channels, previous_observed
+from training.models.student import frame_channels, frame_encoder_input
 from training.train_student import load_student
 
 OUTPUTS = ["logits", "params", "params_logvar"]
@@ -155,10 +155,7 @@ def verify_export(checkpoint: str | Path, onnx_path: str | Path, seed: int = 0, 
     session = ort.InferenceSession(str(onnx_path), opts)
     if "embeddings" in {i.name for i in session.get_inputs()}:  # streaming: frame encoder + temporal head
         frame = ort.InferenceSession(str(frame_encoder_path(onnx_path)), opts)
-        frames = masks[:, :, None]
-        if model.config.previous_frame:
-            previous = previous_observed(torch.from_numpy(masks), torch.from_numpy(valid)).numpy()
-            frames = np.concatenate([frames, previous[:, :, None]], axis=2)
+        frames = frame_encoder_input(model.config, torch.from_numpy(masks), torch.from_numpy(valid)).numpy()
         emb = frame.run(None, {"frame": frames.reshape(2 * FRAME_COUNT, -1, h, w)})[0].reshape(2, FRAME_COUNT, -1)
         got = session.run(OUTPUTS, {"embeddings": emb, "valid": valid})
     else:

@@ -150,6 +150,15 @@ def frame_channels(config: StudentConfig) -> int:
     return 2 if config.previous_frame else 1
 
 
+def frame_encoder_input(config: StudentConfig, masks: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(B, T, H, W) masks, (B, T) valid -> (B, T, C, H, W): what the frame encoder reads for each
+    slot, the mask and (with previous_frame) the previous observed mask."""
+    frames = masks.unsqueeze(2)
+    if config.previous_frame:
+        frames = torch.cat([frames, previous_observed(masks, valid).unsqueeze(2)], dim=2)
+    return frames
+
+
 def previous_observed(masks: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """(B, T, H, W) masks -> for each slot the mask of the nearest earlier valid slot; the slot's
     own mask where there is none (the first frame of an episode has no motion yet)."""
@@ -199,10 +208,7 @@ class StreamingStudent(nn.Module):
     def forward(self, masks: torch.Tensor, valid: torch.Tensor) -> dict[str, torch.Tensor]:
         """masks (B, T, H, W) in [0, 1], valid (B, T)."""
         b, t, h, w = masks.shape
-        frames = masks.unsqueeze(2)
-        if self.config.previous_frame:
-            frames = torch.cat([frames, previous_observed(masks, valid).unsqueeze(2)], dim=2)
-        frames = frames.reshape(b * t, frame_channels(self.config), h, w)
+        frames = frame_encoder_input(self.config, masks, valid).reshape(b * t, -1, h, w)
         keep = valid.reshape(-1) > 0  # unobserved frames are never encoded (their embedding is zeroed anyway)
         encoded = self.frame_encoder(frames[keep])
         emb = encoded.new_zeros(b * t, encoded.shape[-1]).index_copy(0, keep.nonzero()[:, 0], encoded)

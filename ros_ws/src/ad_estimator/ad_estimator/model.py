@@ -210,6 +210,7 @@ class EstimatorModel:
         self._frame_session = frame_session
         self._has_logvar = "params_logvar" in {o.name for o in session.get_outputs()}
         self._outputs = ["logits", "params"] + (["params_logvar"] if self._has_logvar else [])
+        self._last_prepared: tuple[np.ndarray, np.ndarray] | None = None  # (mask, prepare(mask)), see _prepared
         h, w = info.input_size
         if frame_session is None:
             self.feature_shape: tuple[int, ...] = (h, w)
@@ -264,13 +265,27 @@ class EstimatorModel:
 
         ``previous``: the episode's previous observed mask (None for its first frame, which then
         stands in for it, as in training); only models with ``uses_previous_frame`` read it."""
-        frame = self.prepare(mask)
         if self._frame_session is None:
-            return frame
-        channels = [frame]
-        if self.info.uses_previous_frame:
-            channels.append(frame if previous is None else self.prepare(previous))
-        return self._frame_session.run(["embedding"], {"frame": np.stack(channels)[None]})[0][0]
+            return self.prepare(mask)
+        if not self.info.uses_previous_frame:
+            frame = self.prepare(mask)[None, None]
+        else:
+            # The previous frame first: in a stream it is the one prepared last time.
+            before = None if previous is None else self._prepared(previous)
+            current = self._prepared(mask)
+            frame = np.stack([current, current if before is None else before])[None]
+        return self._frame_session.run(["embedding"], {"frame": frame})[0][0]
+
+    def _prepared(self, mask: np.ndarray) -> np.ndarray:
+        """prepare(), remembering the last mask: in a stream, a frame's previous is the frame
+        prepared just before, so each frame is resized once (masks are not changed once offered,
+        which the window relies on too)."""
+        last = self._last_prepared  # one read: the node's worker and service threads may both encode
+        if last is not None and last[0] is mask:
+            return last[1]
+        frame = self.prepare(mask)
+        self._last_prepared = (mask, frame)
+        return frame
 
     def predict(self, features: np.ndarray, valid: np.ndarray) -> Estimate:
         """Estimate from per-slot features (T <= frame_count, oldest first) and their validity."""
