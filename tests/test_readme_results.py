@@ -12,6 +12,8 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results" / "paper"
 
 SHIPPED = "**shipped**: streaming student, previous frame as a second input channel, full, 20 epochs"
+SHIPPED_NONE = "ablation of the shipped: without alignment (task loss only), 20 epochs"
+SHIPPED_ALIGN_ONLY = "ablation of the shipped: alignment only (teacher's frozen predictor), 20 epochs"
 PREVIOUS = "previous shipped: the same with one input channel (the current mask only)"
 NONE_20 = "ablation of the previous shipped: without alignment (task loss only), 20 epochs"
 NONE_10 = "ablation of the previous shipped: without alignment (task loss only), 10 epochs"
@@ -22,6 +24,8 @@ RECIPE = "previous recipe (SPEC weights): streaming, full, 20 epochs"
 ROWS = {
     "### Unseen objects": {
         SHIPPED: "streaming_previous_frame20_unseen/metrics.json",
+        SHIPPED_NONE: "ablation_previous_frame_none_20ep_unseen.json",
+        SHIPPED_ALIGN_ONLY: "ablation_previous_frame_align_only_20ep_unseen.json",
         PREVIOUS: "streaming_full20_unseen/metrics.json",
         NONE_20: "ablation_none_20ep_unseen.json",
         NONE_10: "ablation_none_10ep_unseen.json",
@@ -32,6 +36,8 @@ ROWS = {
     },
     "### Seen objects": {
         SHIPPED: "streaming_previous_frame20_seen/metrics.json",
+        SHIPPED_NONE: "ablation_previous_frame_none_20ep_seen.json",
+        SHIPPED_ALIGN_ONLY: "ablation_previous_frame_align_only_20ep_seen.json",
         PREVIOUS: "streaming_full20_seen/metrics.json",
         NONE_20: "ablation_none_20ep_seen.json",
         NONE_10: "ablation_none_10ep_seen.json",
@@ -60,7 +66,7 @@ def measured(path: Path, frames: str = "25") -> list[str]:
 
 
 def table_rows(text: str, heading: str) -> dict[str, list[str]]:
-    section = text.split(heading, 1)[1].split("\n### ", 1)[0]
+    section = re.split(r"\n#{2,3} ", text.split(heading, 1)[1], maxsplit=1)[0]  # up to the next heading
     rows = {}
     for line in section.splitlines():
         if line.startswith("| ") and not line.startswith("|---"):
@@ -97,6 +103,21 @@ def test_the_shipped_reports_are_the_bundled_models(split):
     assert f"`{bundled['model_id']}`" in (models / "MODEL_CARD.md").read_text()
 
 
+def test_readme_psnr_row_is_the_bundled_models():
+    """The README's re-simulation PSNR row of the shipped student quotes its JSON, which was made
+    with the bundled model."""
+    models = ROOT / "ros_ws" / "src" / "ad_estimator" / "ad_estimator" / "models"
+    result = json.loads((RESULTS / "resim_psnr_shipped_unseen_64.json").read_text())
+    assert result["model_id"] == json.loads((models / "default.metrics.json").read_text())["model_id"]
+    assert len(result["episodes"]) == 64
+    psnr = result["psnr"]
+    families = psnr["families"]
+    expected = (f"median {psnr['median']:.1f}, mean {psnr['mean']:.1f} (jelly {families['jelly']:.1f}, "
+                f"plasticine {families['plasticine']:.1f}, sand {families['sand']:.1f})")
+    rows = table_rows((ROOT / "README.md").read_text(), "### Re-simulation PSNR")
+    assert rows["shipped streaming student (previous frame), 64 random unseen instances"][0] == expected
+
+
 # docs/results/paper/experiments/README.md, section 4: row label -> metrics file
 SECTION_4 = {
     "unseen, shipped (`full`, 20 epochs)": "streaming_full20_unseen/metrics.json",
@@ -112,14 +133,6 @@ SECTION_4 = {
 }
 
 
-def test_experiments_section_4_matches_the_metrics_files():
-    text = (RESULTS / "experiments" / "README.md").read_text()
-    rows = table_rows(text, "## 4. ")
-    for label, file in SECTION_4.items():
-        assert label in rows, f"experiments section 4 lost its row {label!r}"
-        assert rows[label] == measured(RESULTS / file), f"experiments section 4 row {label!r} differs from {file}"
-
-
 # docs/results/paper/experiments/README.md, section 5: row label -> metrics file
 SECTION_5 = {
     "unseen, `pf` (**shipped now**)": "streaming_previous_frame20_unseen/metrics.json",
@@ -131,8 +144,20 @@ SECTION_5 = {
 }
 
 
-def test_experiments_section_5_matches_the_metrics_files():
-    rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), "## 5. ")
-    for label, file in SECTION_5.items():
-        assert label in rows, f"experiments section 5 lost its row {label!r}"
-        assert rows[label] == measured(RESULTS / file), f"experiments section 5 row {label!r} differs from {file}"
+# docs/results/paper/experiments/README.md, section 6: row label -> metrics file
+SECTION_6 = {
+    "unseen, `pf` (`full`, **shipped**)": "streaming_previous_frame20_unseen/metrics.json",
+    "unseen, `pfnone`": "ablation_previous_frame_none_20ep_unseen.json",
+    "unseen, `pfalign`": "ablation_previous_frame_align_only_20ep_unseen.json",
+    "seen, `pf`": "streaming_previous_frame20_seen/metrics.json",
+    "seen, `pfnone`": "ablation_previous_frame_none_20ep_seen.json",
+    "seen, `pfalign`": "ablation_previous_frame_align_only_20ep_seen.json",
+}
+
+
+@pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6)])
+def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
+    rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
+    for label, file in rows_to_files.items():
+        assert label in rows, f"experiments {heading!r} lost its row {label!r}"
+        assert rows[label] == measured(RESULTS / file), f"experiments {heading!r} row {label!r} differs from {file}"
