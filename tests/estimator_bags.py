@@ -31,8 +31,11 @@ def instance_dict(index: int, material: str, parameters: dict, stamp_ns: int) ->
     }
 
 
-def write_test_bag(path: Path, episodes=EPISODES, chunk_size: int = 1024 * 1024) -> Path:
-    """One view, falling-disc masks at the simulator's stamps, ground truth per episode."""
+def write_test_bag(path: Path, episodes=EPISODES, chunk_size: int = 1024 * 1024, edit_mask=None) -> Path:
+    """One view, falling-disc masks at the simulator's stamps, ground truth per episode.
+
+    ``edit_mask(episode, frame, message)``, if given, returns the mask message to record instead
+    (e.g. a damaged frame), or None to leave the frame out."""
     instance_topic, mask_topic = messages.instance_topic(), messages.mask_topic(0)
     with BagWriter(path, chunk_size=chunk_size) as writer:
         writer.add_topic(instance_topic, messages.INSTANCE_TYPE, [qos_profile(**messages.topic_qos(instance_topic))])
@@ -42,5 +45,8 @@ def write_test_bag(path: Path, episodes=EPISODES, chunk_size: int = 1024 * 1024)
             writer.write(instance_topic, start, instance_dict(index, material, parameters, start))
             for frame, mask in enumerate(falling_masks(seed=100 + index)):
                 stamp = messages.frame_stamp(index, frame)
-                writer.write(mask_topic, stamp, messages.mask_message(mask, stamp, "ad_sim/view_0"))
+                message = messages.mask_message(mask, stamp, "ad_sim/view_0")
+                if edit_mask is not None and (message := edit_mask(index, frame, message)) is None:
+                    continue
+                writer.write(mask_topic, stamp, message)
     return path

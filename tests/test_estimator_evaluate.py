@@ -1,5 +1,6 @@
 """`ad_estimator evaluate`: offline metrics over bags (no ROS runtime)."""
 import json
+import re
 import warnings
 
 import numpy as np
@@ -8,6 +9,8 @@ from mcap.reader import make_reader
 
 from ad_estimator import evaluate
 from ad_estimator.model import EstimatorModel
+from ad_estimator.window import FrameWindow
+from ad_sim import messages
 from estimator_bags import EPISODES, write_test_bag
 from estimator_models import build_streaming_model, falling_masks
 
@@ -83,3 +86,110 @@ def test_truncated_recording_needs_recover_and_then_gives_its_complete_episodes(
     assert warnings.formatwarning("x is truncated", UserWarning, "rosbag.py", 1) == "warning: x is truncated\n"
     scored = json.loads((tmp_path / "b" / "predictions.json").read_text())["frames"]["25"]
     assert 1 <= len(scored) < len(EPISODES)
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def damaged(episode, frame, edit):
+    """edit_mask for write_test_bag: `edit` changes frame `frame` of episode `episode` in place."""
+    def edit_mask(index, k, message):
+        if (index, k) == (episode, frame):
+            edit(message)
+        return message
+    return edit_mask
+
+
+def run_main(model, bag, out, *extra):
+    return evaluate.main(["--model", str(model), "--bags", str(bag), "--quiet", "--out", str(out), *extra])
+
+
+@pytest.mark.parametrize("edit, reason", [
+    (lambda m: m.update(encoding="32FC1"), "unsupported encoding '32FC1'"),
+    (lambda m: m.update(data=m["data"][:100]), "data length 100 != step 128 * height 128"),
+    (lambda m: m.update(step=10), "step 10 < width 128"),
+    (lambda m: m.update(height=0, width=0, step=0, data=b""), "empty image 0x0"),
+    (lambda m: m.update(height=100_000, width=100_000, step=100_000), "exceeds max_image_pixels"),
+])
+def test_a_frame_the_node_rejects_is_skipped_warned_and_counted(setup, tmp_path, capsys, edit, reason):
+    """The rest of the run goes on; the episode gets the estimate the node's window gives without that frame."""
+    model_path, _ = setup
+    bag = write_test_bag(tmp_path / "bag", edit_mask=damaged(1, 5, edit))
+    with pytest.warns(UserWarning, match=rf"bag: episode test-disc-plasticine-0001: 1 mask frame\(s\) skipped.*"
+                                         rf"stamp 1\.625 s: .*{re.escape(reason)}"):
+        assert run_main(model_path, bag, tmp_path / "out") == 0
+    assert "input problems: 1 mask frame(s) skipped, as the node rejects them" in capsys.readouterr().out
+    predictions = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert [p["episode_id"] for p in predictions["frames"]["25"]] == [f"test-disc-{m}-000{i}" for i, (m, _) in
+                                                                     enumerate(EPISODES)]
+    ((skipped),) = predictions["skipped_frames"]
+    assert skipped["episode_id"] == "test-disc-plasticine-0001" and skipped["stamp_ns"] == 1_625_000_000
+    assert reason in skipped["reason"]
+    model = EstimatorModel.load(model_path)
+    window = FrameWindow(model.info.frame_interval, model.info.frame_count)  # the node's defaults
+    masks = falling_masks(seed=101)
+    (out,) = [o for k in range(25) if k != 5 for o in window.add(messages.frame_stamp(1, k), masks[k], model.encode)]
+    episode = predictions["frames"]["25"][1]
+    assert episode["slots"] == 25 and episode["newest_stamp_ns"] == out.newest_stamp_ns
+    np.testing.assert_allclose(episode["probabilities"], model.predict(out.features, out.valid).probabilities,
+                               rtol=1e-5)
+    assert "Input problems: 1 mask frame(s) skipped" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_an_image_size_change_restarts_the_window_as_in_the_node(setup, tmp_path):
+    """A 64x64 frame 5 in a 128x128 episode: the window restarts twice, so the episode's window never
+    fills 25 (nor 6) slots: it is left out of those rows, kept in the K = 4 row (frames before the change)."""
+    model_path, _ = setup
+    small = falling_masks(seed=3, size=64)[0]
+    bag = write_test_bag(tmp_path / "bag", edit_mask=damaged(1, 5, lambda m: m.update(
+        height=64, width=64, step=64, data=small.tobytes())))
+    with pytest.warns(UserWarning) as caught:
+        assert run_main(model_path, bag, tmp_path / "out", "--frames", "6", "4") == 0
+    messages = [str(w.message) for w in caught]
+    assert any("episode test-disc-plasticine-0001: the image size changes from 128x128 to 64x64 at stamp 1.625 s"
+               in m for m in messages), messages
+    assert any("episode test-disc-plasticine-0001: left out of the K = 25, 6 row(s)" in m for m in messages), messages
+    predictions = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert [len(predictions["frames"][k]) for k in ("25", "6", "4")] == [2, 2, 3]
+    assert predictions["left_out"]["25"] == [{"bag": str(bag), "episode_id": "test-disc-plasticine-0001",
+                                              "reason": "its window holds 19 of 25 frame slots"}]
+    assert "Clips: 2;" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_an_episode_cut_short_is_left_out_of_the_rows_it_cannot_fill(setup, tmp_path, capsys):
+    model_path, _ = setup
+    bag = write_test_bag(tmp_path / "bag", edit_mask=lambda index, k, m: None if index == 2 and k >= 12 else m)
+    with pytest.warns(UserWarning, match=r"episode test-disc-sand-0002: left out of the K = 25, 18 row\(s\): fewer "
+                                         r"frame slots than K \(the K = 25 window holds 12; 12 frames accepted"):
+        assert run_main(model_path, bag, tmp_path / "out", "--frames", "18", "12") == 0
+    assert "episodes left out of the rows K = 25: 1, K = 18: 1" in capsys.readouterr().out
+    predictions = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert [p["true_material"] for p in predictions["frames"]["25"]] == ["jelly", "plasticine"]
+    assert [p["frames_used"] for p in predictions["frames"]["12"]] == [12, 12, 12]
+    assert [e["episode_id"] for e in predictions["left_out"]["18"]] == ["test-disc-sand-0002"]
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())["frames"]
+    assert (metrics["25"]["n"], metrics["18"]["n"], metrics["12"]["n"]) == (2, 2, 3)
+    assert "Clips: 2;" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_a_topic_that_is_not_an_image_is_named(setup, tmp_path, capsys):
+    model, bag = setup
+    assert run_main(model, bag, tmp_path / "out", "--topic", "/ad_sim/instance") == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "topic /ad_sim/instance in" in err, err
+    assert "carries ad_msgs/msg/SimInstance, not sensor_msgs/msg/Image" in err
+
+
+def test_an_unusable_out_is_refused_before_any_work(setup, tmp_path, capsys):
+    """Before the bags are even looked at (a missing bag is not reported: --out is checked first)."""
+    model, _ = setup
+    (tmp_path / "file").write_text("keep")
+    for out, message in ((tmp_path / "file", "file is not a folder"),
+                         (tmp_path / "file" / "sub", "file is not a folder")):
+        assert run_main(model, tmp_path / "no_bag", out) == 1
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"evaluate: --out {out}: " in err and message in err, err
+    assert (tmp_path / "file").read_text() == "keep"
+    assert run_main(model, tmp_path / "no_bag", tmp_path / "new" / "report") == 1
+    assert "no_bag does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()  # nothing is created for a run that does no work

@@ -154,7 +154,11 @@ def test_streaming_without_frame_encoder_names_it(tmp_path):
 
 
 def _with_metadata(path, **entries):
+    """Sets (adds or replaces) metadata entries of the model file at `path`."""
     model = onnx.load(str(path))
+    kept = [p for p in model.metadata_props if p.key not in entries]
+    del model.metadata_props[:]
+    model.metadata_props.extend(kept)
     for key, value in entries.items():
         model.metadata_props.add(key=key, value=value)
     onnx.save(model, str(path))
@@ -178,6 +182,42 @@ def test_passing_the_frame_encoder_says_which_file_to_pass(tmp_path):
     build_streaming_model(tmp_path, name="s")
     with pytest.raises(ModelError, match=r"s\.onnx"):
         EstimatorModel.load(tmp_path / "s.frame.onnx")
+
+
+@pytest.mark.parametrize("kind, entries, message", [
+    ("clip", {"ad.input_size": "[24, 24]"}, r"m.onnx: input 'masks' has shape \['B', 25, 32, 32\], which does not "
+                                           r"fit metadata ad.input_size \[24, 24\]; re-export"),
+    ("streaming", {"ad.input_size": "[24, 24]"}, r"s.frame.onnx: input 'frame' has shape \['B', 1, 32, 32\], "
+                                                r"which does not fit metadata ad.input_size \[24, 24\]"),
+    ("clip", {"ad.frame_count": "30"}, r"m.onnx: input 'masks' .* ad.frame_count \[30\]"),
+    ("streaming", {"ad.frame_count": "30"}, r"s.onnx: input 'embeddings' .* ad.frame_count \[30\]"),
+    ("streaming", {"ad.parameter_names": '["youngs_modulus"]'},
+     r"s.onnx: output 'params' has 4 values but metadata ad.parameter_names names 1 \(youngs_modulus\)"),
+    ("clip", {"ad.frame_interval": "inf"}, r"m.onnx: bad input_size/frame_count/frame_interval metadata .*inf"),
+    ("clip", {"ad.frame_interval": "nan"}, r"m.onnx: bad input_size/frame_count/frame_interval metadata .*nan"),
+    ("clip", {"ad.frame_interval": "0"}, r"m.onnx: bad input_size/frame_count/frame_interval metadata"),
+])
+def test_metadata_that_does_not_fit_the_graph_is_refused_at_load(tmp_path, kind, entries, message):
+    path = build_clip_model(tmp_path / "m.onnx") if kind == "clip" else build_streaming_model(tmp_path, name="s")
+    _with_metadata(path, **entries)
+    with pytest.raises(ModelError, match=message):
+        EstimatorModel.load(path)
+
+
+def test_a_frame_count_the_graph_cannot_run_is_refused_at_load(tmp_path, capfd):
+    """A symbolic slot dimension cannot be checked statically: the trial run at load finds it
+    (the test head's per-slot weights have 25 slots), without onnxruntime's own error log."""
+    head = build_streaming_model(tmp_path, name="s")
+    model = onnx.load(str(head))
+    for graph_input in model.graph.input:
+        graph_input.type.tensor_type.shape.dim[1].dim_param = "T"
+    onnx.save(model, str(head))
+    assert EstimatorModel.load(head).info.frame_count == 25
+    _with_metadata(head, **{"ad.frame_count": "30"})
+    with pytest.raises(ModelError, match=r"s.onnx: a trial run at the metadata's input_size \[32, 32\] and "
+                                         r"frame_count 30 failed, so the graph does not fit its ad.\* metadata"):
+        EstimatorModel.load(head)
+    assert "onnxruntime" not in capfd.readouterr().err
 
 
 # --------------------------------------------------------------------------- images

@@ -186,6 +186,11 @@ def test_estimate_service_answers_a_clip(ros, model_paths):
     future = client.call_async(bad)
     assert wait_for(future.done)
     assert not future.result().success and "32FC1" in future.result().message
+    mixed = EstimateMaterial.Request(frames=[image_msg(masks[0], 0), image_msg(falling_masks(size=64)[1], 0)])
+    future = client.call_async(mixed)
+    assert wait_for(future.done)
+    assert not future.result().success
+    assert future.result().message == "frame 1: 64x64, frame 0: 128x128; clip frames must all have the same size"
     future = client.call_async(EstimateMaterial.Request())
     assert wait_for(future.done)
     assert not future.result().success and "empty" in future.result().message

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ad_estimator.window import FrameWindow, clip_stamps
+from ad_estimator.window import FrameWindow, clip_output, clip_stamps
 
 DT = 25_000_000  # ns
 SIZE = (128, 128)
@@ -244,6 +244,18 @@ def test_bad_configuration_is_refused():
         FrameWindow(0.025, 25, policy="sometimes")
     with pytest.raises(ValueError, match="gap_threshold"):
         FrameWindow(0.025, 25, gap_threshold=0.01)
+    for interval in (float("inf"), float("nan"), 0.0):
+        with pytest.raises(ValueError, match="finite frame_interval > 0"):
+            FrameWindow(interval, 25)
+
+
+def test_clip_output_restarts_on_a_size_change_as_a_stream_does():
+    """Frame 5 of another size: the clip's output is that of the frames after it (the last restart)."""
+    stamps = [k * DT for k in range(25)]
+    masks = [frame((64, 64) if k == 5 else SIZE) for k in range(25)]
+    out = clip_output(stamps, masks, lambda mask, _previous: np.array([float(mask.shape[0])]), 0.025, 25)
+    assert out.episode_start_ns == out.oldest_stamp_ns == 6 * DT and len(out.valid) == 19 and out.valid.all()
+    assert not out.complete and (out.features == 128.0).all()
 
 
 def test_clip_stamps():

@@ -49,6 +49,10 @@ def test_help_list_shapes_and_argument_errors(capsys):
             main(bad)
         assert exit_info.value.code == 2
     assert "/nonexistent.yaml" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--device", "cuda:99", "--out", "/nonexistent/out"])  # refused before anything is written
+    assert exit_info.value.code == 2
+    assert "Warp device 'cuda:99' is not available" in capsys.readouterr().err
 
 
 @pytest.mark.ros

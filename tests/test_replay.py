@@ -13,7 +13,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 
-from ad_estimator import evaluate
+from ad_estimator import evaluate, replay
 from ad_estimator.model import BUNDLED_MODEL
 from ad_sim.rosbag import BagReader
 from estimator_bags import write_test_bag
@@ -102,6 +102,19 @@ def test_replay_truncated_recording_with_recover(tmp_path, ros_domain_id):
     assert proc.returncode == 0 and "warning: " in out and "truncated" in out, out
     published = int(out.split("replay: published ")[1].split()[0])
     assert 0 < published < 3 * 26, out  # some, not all, of 3 episodes x (instance + 25 masks)
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--delay", "-1"], "--delay must be a finite number of seconds >= 0"),
+    (["--delay", "inf"], "--delay must be a finite number of seconds >= 0"),
+    (["--wait-timeout", "-5"], "--wait-timeout must be a number of seconds >= 0"),
+    (["--wait-timeout", "nan"], "--wait-timeout must be a number of seconds >= 0"),
+    (["--rate", "0"], "--rate must be > 0"),
+])
+def test_replay_refuses_bad_timing_options_before_starting(test_bag, options, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        replay.main(["replay", str(test_bag), *options])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
 
 
 def test_replay_missing_bag(tmp_path, ros_domain_id):

@@ -11,6 +11,7 @@ import pytest
 from ad_sim.instances import benchmark
 from ad_sim.materials import FAMILIES
 from ad_sim.resimulate import PSNR_CAP, resimulation_psnr
+from ad_sim.rosbag import BagReader, BagWriter, qos_profile
 from estimator_models import build_clip_model
 from training import resim_psnr
 
@@ -61,3 +62,49 @@ def test_registered_as_a_training_subcommand_with_help(capsys):
         main(["resim-psnr", "--help"])
     assert exit_info.value.code == 0
     assert "--model" in capsys.readouterr().out
+
+
+def test_truncated_bags_are_read_up_to_their_last_complete_chunk(tmp_path):
+    """A recording cut short (a killed recorder) is read as every training stage reads it: in recover mode."""
+    (tmp_path / "cut").mkdir()
+    (source,) = SAMPLE_BAG.glob("*.mcap")
+    data = source.read_bytes()
+    (tmp_path / "cut" / source.name).write_bytes(data[: len(data) // 2])
+    (tmp_path / "cut" / "metadata.yaml").write_bytes((SAMPLE_BAG / "metadata.yaml").read_bytes())
+    with pytest.warns(UserWarning, match=r"is truncated: no MCAP footer .*: recovered \d+ messages"):
+        instances, videos = resim_psnr.observed_from_bags(tmp_path / "cut")
+    expected = [i.episode_id for i in benchmark("tiny", "unseen")]
+    assert 0 < len(instances) < len(expected) and [i.episode_id for i in instances] == expected[: len(instances)]
+    assert videos.shape == (len(instances), 25, 128, 128)
+
+
+def test_an_unusable_frame_loses_its_episode_only(tmp_path, caplog):
+    """A mask the estimator refuses skips its episode, named with the frame; the other episodes are scored."""
+    raw, decoded = BagReader(SAMPLE_BAG, raw=True), BagReader(SAMPLE_BAG)
+    masks_seen = 0
+    with BagWriter(tmp_path / "bad") as writer:
+        for topic, type_name in raw.topics().items():
+            writer.add_topic(topic, type_name, [qos_profile()])
+        for (topic, stamp, data), (_, _, message) in zip(raw, decoded):
+            if topic == resim_psnr.MASK_TOPIC:
+                masks_seen += 1
+                if masks_seen == 30:  # the second episode's 5th frame
+                    message.encoding, bad_stamp = "32FC1", stamp
+                    data = message
+            writer.write(topic, stamp, data)
+    instances, _ = resim_psnr.observed_from_bags(tmp_path / "bad")
+    expected = [i.episode_id for i in benchmark("tiny", "unseen")]
+    assert [i.episode_id for i in instances] == expected[:1] + expected[2:]
+    assert any(m.startswith(f"{tmp_path / 'bad'}: episode {expected[1]}: {resim_psnr.MASK_TOPIC} frame stamped "
+                            f"{bad_stamp / 1e9:.3f} s: unsupported encoding '32FC1'") for m in caplog.messages)
+
+
+def test_a_device_this_machine_lacks_is_refused_before_any_work(tmp_path, capsys):
+    from training.__main__ import main
+
+    # Neither the model nor the bags exist: the device is checked first.
+    for command in (["resim-psnr", "--model", str(tmp_path / "missing.onnx"), "--bags", str(tmp_path)],
+                    ["baseline", "--bags", str(tmp_path)]):
+        assert main([*command, "--device", "cuda:99"]) == 1
+        (line,) = capsys.readouterr().err.splitlines()
+        assert line.startswith(f"python -m training {command[0]}: Warp device 'cuda:99' is not available")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -201,11 +202,30 @@ def test_truncated_file_is_an_error_and_recoverable(tmp_path):
     file.write_bytes(data[: len(data) // 2])
     with pytest.raises(BagError, match=r"trunc_0\.mcap is truncated"):
         list(BagReader(path))
-    with pytest.warns(UserWarning, match="truncated"):
-        recovered = list(BagReader(path, recover=True))
+    reader = BagReader(path, recover=True)
+    with pytest.warns(UserWarning) as caught:
+        topics = reader.topics()  # scans the summary-less file (replay asks first) ...
+        recovered = list(reader)  # ... and reading scans it again
     assert 0 < len(recovered) < len(written)
     # What is recovered is exactly a prefix of what was written.
     assert [(t, s) for t, s, _ in recovered] == [(t, s) for t, s, _ in written[: len(recovered)]]
+    assert set(topics) == {t for t, _, _ in written}
+    # Said once, as what was recovered and lost (no advice to use --recover, which is in use).
+    (warning,) = [str(w.message) for w in caught]
+    assert reader.problems == [warning]
+    assert warning.startswith(f"{file} is truncated: no MCAP footer ({len(data) // 2} bytes")
+    assert f"recovered {len(recovered)} messages; the last " in warning and "--recover" not in warning
+
+
+def test_empty_or_magic_only_file_is_truncated_not_foreign(tmp_path):
+    """A writer killed as it created a file leaves nothing or part of the magic: truncated, not foreign."""
+    for name, content, what in (("empty", b"", "is empty"), ("cut", rosbag.MCAP_MAGIC[:4], "is truncated inside the MCAP magic (4 bytes")):
+        file = tmp_path / f"{name}.mcap"
+        file.write_bytes(content)
+        with pytest.raises(BagError, match=rf"{name}\.mcap {re.escape(what)}.*--recover"):
+            list(BagReader(file))
+        with pytest.warns(UserWarning, match=rf"{name}\.mcap {re.escape(what)}.*: recovered 0 messages$"):
+            assert list(BagReader(file, recover=True)) == []
 
 
 def test_corrupt_chunk_names_file_and_offset(tmp_path):

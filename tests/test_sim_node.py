@@ -133,3 +133,13 @@ def test_help_lists_the_parameters():
         assert f"ros2 run ad_sim {executable}" in result.stdout
         for name in parameters:
             assert f"  {name} (default" in result.stdout
+
+
+def test_unknown_arguments_are_a_usage_error():
+    """Outside --ros-args, a mistyped option must not start a node that ignores it."""
+    for executable in ("node", "record"):
+        result = subprocess.run([str(ADRUN), "ad_sim", executable, "--bogus", "--ros-args", "-p", "output:=x"],
+                                cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
+        assert result.returncode == 2, result.stderr
+        assert "unrecognized arguments: --bogus" in result.stderr
+        assert "output:=x" not in result.stderr  # ROS arguments are the node's, not argparse's

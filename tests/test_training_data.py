@@ -66,21 +66,84 @@ def test_cache_is_reused_and_keyed_by_content(bags, tmp_path, monkeypatch):
     assert data.bag_key(other) not in keys
 
 
+def write_edited_bag(path, episodes, edit, **writer_options) -> None:
+    """A bag of the episodes (one view) in which edit(index, topic, stamp, message) gives what to
+    write instead of each message (None: leave it out)."""
+    types = messages.topic_types(1)
+    with BagWriter(path, **writer_options) as writer:
+        for index, ep in enumerate(episodes):
+            for topic, stamp, msg in messages.episode_messages(ep, index):
+                msg = edit(index, topic, stamp, msg)
+                if msg is None:
+                    continue
+                if not writer.has_topic(topic):
+                    writer.add_topic(topic, types[topic], [qos_profile(**messages.topic_qos(topic))])
+                writer.write(topic, stamp, msg)
+
+
 def test_incomplete_episodes_are_skipped(tmp_path):
     """A recording that lost frames of one episode keeps the complete ones."""
     episodes = [synthetic_episode(i, 0, 1) for i in range(3)]
-    writer = BagWriter(tmp_path / "bag")
-    types = messages.topic_types(1)
-    for index, ep in enumerate(episodes):
-        for topic, stamp, msg in messages.episode_messages(ep, index):
-            if index == 1 and topic == messages.particles_topic() and stamp > messages.frame_stamp(1, 20):
-                continue  # episode 1 lost its last particle frames
-            if not writer.has_topic(topic):
-                writer.add_topic(topic, types[topic], [qos_profile(**messages.topic_qos(topic))])
-            writer.write(topic, stamp, msg)
-    writer.close()
+
+    def lose_last_particle_frames(index, topic, stamp, msg):
+        return None if index == 1 and topic == messages.particles_topic() and stamp > messages.frame_stamp(1, 20) else msg
+
+    write_edited_bag(tmp_path / "bag", episodes, lose_last_particle_frames)
     ds = data.load_dataset(tmp_path / "bag", tmp_path / "cache", progress=False)
     assert ds.episode_ids == [episodes[0].instance.episode_id, episodes[2].instance.episode_id]
+
+
+def as_mono16(msg):
+    """The mono8 mask as mono16 (0 / 65535, little endian): a mask the estimator accepts."""
+    pixels = np.frombuffer(bytes(msg["data"]), np.uint8).astype("<u2") * 257
+    return {**msg, "encoding": "mono16", "step": msg["step"] * 2, "is_bigendian": 0, "data": pixels.tobytes()}
+
+
+@pytest.mark.parametrize("damage, reason", [
+    (lambda msg: {**msg, "encoding": "32FC1"}, "unsupported encoding '32FC1'"),
+    (lambda msg: {**msg, "data": bytes(msg["data"])[:100]}, "data length 100 != step 128 * height 128"),
+    (lambda msg: {**msg, "height": 64, "width": 64, "step": 64, "data": bytes(msg["data"])[: 64 * 64]},
+     "mask is 64x64, not the simulator's 128x128"),
+])
+def test_an_unusable_mask_frame_skips_only_its_episode(tmp_path, caplog, damage, reason):
+    """Masks are converted as the estimator converts them: another encoding it accepts is read, a
+    frame it refuses (or of another size) loses its episode, named with the frame, and no other."""
+    episodes = [synthetic_episode(i, 0, 1) for i in range(3)]
+    bad_stamp, mono16_stamp = messages.frame_stamp(1, 10), messages.frame_stamp(2, 5)
+
+    def edit(index, topic, stamp, msg):
+        if topic == messages.mask_topic(0) and stamp == bad_stamp:
+            return damage(msg)
+        return as_mono16(msg) if topic == messages.mask_topic(0) and stamp == mono16_stamp else msg
+
+    write_edited_bag(tmp_path / "bag", episodes, edit)
+    ds = data.load_dataset(tmp_path / "bag", tmp_path / "cache", progress=False)
+    assert ds.episode_ids == [episodes[0].instance.episode_id, episodes[2].instance.episode_id]
+    np.testing.assert_array_equal(ds.video(1), episodes[2].masks[0])  # its mono16 frame included
+    bad = episodes[1].instance.episode_id
+    where = f"{tmp_path / 'bag'}: episode {bad}: {messages.mask_topic(0)} frame stamped {bad_stamp / 1e9:.3f} s: "
+    assert any(m.startswith(where + reason) and m.endswith("; episode skipped") for m in caplog.messages)
+    assert f"{tmp_path / 'bag'}: 1 of 3 episodes skipped" in caplog.messages
+
+
+def test_a_cache_of_a_truncated_bag_warns_on_every_use(tmp_path, caplog, monkeypatch):
+    """A bag cut short by a killed recorder is read up to its last complete chunk once, and every later
+    use of its cache still says that its source was incomplete."""
+    episodes = [synthetic_episode(i, 0, 1) for i in range(3)]
+    write_edited_bag(tmp_path / "bag", episodes, lambda index, topic, stamp, msg: msg, chunk_size=50_000)
+    file = tmp_path / "bag" / "bag_0.mcap"
+    file.write_bytes(file.read_bytes()[: int(file.stat().st_size * 0.8)])
+    with pytest.warns(UserWarning, match=r"bag_0\.mcap is truncated: no MCAP footer .*: recovered \d+ messages"):
+        first = data.load_dataset(tmp_path / "bag", tmp_path / "cache", progress=False)
+    assert first.episode_ids == [e.instance.episode_id for e in episodes[:2]]
+    monkeypatch.setattr(data, "read_bag", lambda bag: pytest.fail(f"re-decoded cached bag {bag}"))
+    for _ in range(2):
+        caplog.clear()
+        again = data.load_dataset(tmp_path / "bag", tmp_path / "cache", progress=False)
+        assert again.shards == first.shards
+        hits = [m for m in caplog.messages if m.startswith("cached from an incomplete bag: ")]
+        assert any(f"{file} is truncated: no MCAP footer" in m for m in hits)
+        assert any(f"episode {episodes[2].instance.episode_id} is incomplete" in m for m in hits)
 
 
 def test_missing_bags_error_says_what_to_do(tmp_path):

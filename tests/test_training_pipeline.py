@@ -59,6 +59,19 @@ def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
                  str(tmp_path / "cache"), "--out", str(report_dir), "--frames", "15,20", "14", "--threads", "2",
                  "--no-progress"]) == 0
     assert set(json.loads((report_dir / "metrics.json").read_text())["frames"]) == {"25", "20", "15", "14"}
+    # The summary is recorded next to the model unless --no-record; a corrupt record fails before the work.
+    record = onnx_path.with_name("streaming_full.metrics.json")
+    assert "unseen" in json.loads(record.read_text())["evaluation"]
+    record.write_text("{")
+    evaluate_again = ["evaluate", "--model", str(onnx_path), "--bags", str(data / "tiny" / "unseen"), "--cache",
+                      str(tmp_path / "cache"), "--out", str(tmp_path / "again"), "--no-progress"]
+    capsys.readouterr()
+    assert main(evaluate_again) == 1
+    err = capsys.readouterr().err
+    assert str(record) in err and "--no-record" in err and "Traceback" not in err
+    assert not (tmp_path / "again").exists()
+    assert main([*evaluate_again, "--no-record"]) == 0
+    assert record.read_text() == "{" and (tmp_path / "again" / "report.md").is_file()
 
 
 def test_evaluate_rejects_bad_prefix_lengths(capsys):
@@ -79,6 +92,7 @@ def test_user_errors_are_one_line_without_traceback(tmp_path, capsys, monkeypatc
         (["evaluate", "--model", str(model), "--bags", str(masks_only), "--cache", str(tmp_path / "c"),
           "--no-progress"], "--skip-particles"),
         (["export", "--checkpoint", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "m.onnx")], "missing.pt"),
+        (["evaluate", "--model", str(tmp_path), "--bags", str(masks_only)], "is a folder, not a model file"),
     ]
     for argv, expected in cases:
         assert main(argv) == 1, argv

@@ -36,8 +36,10 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ad_sim.rosbag import one_line_warnings
     from training import baseline, engine, evaluate, export, pipeline, resim_psnr, train_student, train_teacher
 
+    one_line_warnings()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     parser = argparse.ArgumentParser(prog="python -m training", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)

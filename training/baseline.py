@@ -30,6 +30,7 @@ from tqdm import tqdm
 from ad_estimator.metrics import Predictions, compute_metrics, format_table
 from ad_sim.instances import Instance, benchmark
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, PARAMETER_NAMES, SAMPLED_PARAMETERS
+from ad_sim.mpm import check_device
 from ad_sim.resimulate import mask_mse, psnr_from_mse, resimulate
 from training.resim_psnr import FIT_VIEW, format_psnr, observed_from_bags, psnr_summary, select
 
@@ -207,6 +208,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 
 
 def run(args) -> dict:
+    check_device(args.device)
     progress = not args.no_progress
     if args.bags:
         instances, observed = observed_from_bags(args.bags, args.instances, args.seed)

@@ -8,7 +8,9 @@ instance's stamp in FRAME_INTERVAL units.
 Cache: one folder per bag (a rosbag2 folder, or a lone .mcap file), `<cache>/<key>/`, key =
 sha256 over CACHE_VERSION and, per .mcap file, its name, size and first and last MiB (the MCAP
 summary and footer sit at the end, so any rewrite changes the key). Contents:
-  meta.json            episode ids, shapes, splits, materials, seeds
+  meta.json            episode ids, shapes, splits, materials, seeds; source_problems: what was
+                       missing or unreadable in the bag (truncated files, skipped episodes), warned
+                       again on every use of the cache
   labels.npy           (N,) int64 class index into FAMILIES
   params_si.npy        (N, 4) float64 SI, NaN where the family lacks the parameter
   params_norm.npy      (N, 4) float32 normalised over the union ranges (0 where not sampled)
@@ -31,6 +33,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask
 from ad_sim.materials import (
     FAMILIES,
     FRAME_COUNT,
@@ -40,11 +43,12 @@ from ad_sim.materials import (
     normalise,
 )
 from ad_sim.messages import POINT_FIELDS, instance_topic, particles_topic
+from ad_sim.render import MASK_SIZE
 from ad_sim.rosbag import BagReader, group_episodes
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: meta.json records source_problems (a version-1 cache cannot say its bag was complete)
 MASK_TOPIC = re.compile(r"^/ad_sim/view_(\d+)/mask$")
 _HASH_BLOCK = 1 << 20
 
@@ -79,11 +83,27 @@ def bag_key(bag: Path) -> str:
     return h.hexdigest()[:32]
 
 
-def _image(msg) -> np.ndarray:
-    if msg.encoding not in ("mono8", "8UC1"):
-        raise ValueError(f"mask images must be mono8, got {msg.encoding!r}")
-    data = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(msg.height, msg.step)
-    return data[:, : msg.width]
+class EpisodeRejected(ValueError):
+    """An episode of a bag cannot be used (the message names the bag, the episode and why)."""
+
+
+def episode_video(bag: Path, episode_id: str, topic: str, frames) -> np.ndarray:
+    """(T, MASK_SIZE, MASK_SIZE) uint8 {0, 255} masks of one episode's [(stamp_ns, Image)] frames,
+    converted as the estimator converts camera frames (ad_estimator.images). EpisodeRejected
+    for a frame that cannot be used or is not of the simulator's mask size (what re-simulation
+    renders and the cache stacks)."""
+    masks = []
+    for stamp, image in frames:
+        where = f"{bag}: episode {episode_id}: {topic} frame stamped {stamp / 1e9:.3f} s"
+        try:
+            mask = image_to_mask(image, MAX_IMAGE_PIXELS)
+        except ValueError as exc:
+            raise EpisodeRejected(f"{where}: {exc}") from exc
+        if mask.shape != (MASK_SIZE, MASK_SIZE):
+            raise EpisodeRejected(f"{where}: mask is {mask.shape[1]}x{mask.shape[0]}, "
+                                  f"not the simulator's {MASK_SIZE}x{MASK_SIZE}")
+        masks.append(mask)
+    return np.stack(masks)
 
 
 def _particles(msg) -> np.ndarray:
@@ -121,45 +141,61 @@ def labels_of(material: str, names, values) -> tuple[int, np.ndarray, np.ndarray
     return FAMILIES.index(material), si, norm, mask
 
 
-def _frames(items, start_ns: int) -> dict[int, object]:
-    """Messages of one topic keyed by frame index (stamp offset / FRAME_INTERVAL)."""
+def _frames(items, start_ns: int) -> dict[int, tuple[int, object]]:
+    """(stamp_ns, message) of one topic keyed by frame index (stamp offset / FRAME_INTERVAL)."""
     out = {}
     for stamp, msg in items:
         t = round((stamp - start_ns) * 1e-9 / FRAME_INTERVAL)
         if 0 <= t < FRAME_COUNT:
-            out[t] = msg
+            out[t] = (stamp, msg)
     return out
 
 
-def read_bag(bag: Path) -> list[dict]:
-    """Decodes one bag into complete episodes (incomplete ones are skipped with a warning)."""
-    out = []
+def read_bag(bag: Path) -> tuple[list[dict], list[str]]:
+    """Decodes one bag into its complete episodes, and what was missing or unreadable, one line each:
+    the reader's warnings (a truncated file, read in recover mode) and the episodes skipped, each
+    warned as it is found. An episode is skipped when it lacks frames or one of its frames cannot
+    be used; the other episodes are kept."""
+    out, skipped = [], []
     wanted = {instance_topic(), particles_topic()}
-    topics = [t for t in BagReader(bag, recover=True).topics() if t in wanted or MASK_TOPIC.match(t)]
-    for ep in group_episodes(BagReader(bag, topics=topics, recover=True), instance_topic()):
+    reader = BagReader(bag, recover=True)  # one reader: its topics() scan and the reading warn once
+    reader.topic_filter = {t for t in reader.topics() if t in wanted or MASK_TOPIC.match(t)}
+    episodes = 0
+    for ep in group_episodes(reader, instance_topic()):
+        episodes += 1
         inst = ep.instance
         particles = _frames(ep.messages.get(particles_topic(), []), ep.stamp_ns)
-        videos = {}
+        views = {}
         for topic, items in ep.messages.items():
             m = MASK_TOPIC.match(topic)
             frames = _frames(items, ep.stamp_ns) if m else {}
             if len(frames) == FRAME_COUNT:
-                videos[int(m.group(1))] = np.stack([_image(frames[t]) for t in range(FRAME_COUNT)])
-        if len(particles) != FRAME_COUNT or not videos:
-            log.warning("%s: episode %s is incomplete (%d particle frames, %d complete views); skipped",
-                        bag, inst.episode_id, len(particles), len(videos))
+                views[int(m.group(1))] = (topic, [frames[t] for t in range(FRAME_COUNT)])
+        if len(particles) != FRAME_COUNT or not views:
+            skipped.append(f"{bag}: episode {inst.episode_id} is incomplete ({len(particles)} particle frames, "
+                           f"{len(views)} complete views); skipped")
+            log.warning("%s", skipped[-1])
             continue
-        trajectory = np.stack([_particles(particles[t]) for t in range(FRAME_COUNT)])
+        try:
+            videos = {view: episode_video(bag, inst.episode_id, topic, frames) for view, (topic, frames) in views.items()}
+        except EpisodeRejected as exc:
+            skipped.append(f"{exc}; episode skipped")
+            log.warning("%s", skipped[-1])
+            continue
+        trajectory = np.stack([_particles(particles[t][1]) for t in range(FRAME_COUNT)])
         label, si, norm, mask = labels_of(inst.material, inst.parameter_names, inst.parameters)
         out.append({
             "episode_id": inst.episode_id, "shape": inst.shape, "split": inst.split, "material": inst.material,
             "seed": int(inst.seed), "label": label, "params_si": si, "params_norm": norm, "param_mask": mask,
             "trajectory": normalise_displacement(trajectory), "videos": dict(sorted(videos.items())),
         })
-    return out
+    if skipped:
+        skipped.append(f"{bag}: {len(skipped)} of {episodes} episodes skipped")
+        log.warning("%s", skipped[-1])
+    return out, reader.problems + skipped
 
 
-def _write_shard(folder: Path, episodes: list[dict]) -> None:
+def _write_shard(folder: Path, episodes: list[dict], source_problems: list[str]) -> None:
     tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
     tmp.mkdir(parents=True, exist_ok=True)
     np.save(tmp / "labels.npy", np.array([e["label"] for e in episodes], dtype=np.int64))
@@ -177,6 +213,7 @@ def _write_shard(folder: Path, episodes: list[dict]) -> None:
     np.save(tmp / "video_instance.npy", np.array(owner, dtype=np.int64))
     np.save(tmp / "video_view.npy", np.array(views, dtype=np.int64))
     meta = {key: [e[key] for e in episodes] for key in ("episode_id", "shape", "split", "material", "seed")}
+    meta["source_problems"] = source_problems
     (tmp / "meta.json").write_text(json.dumps(meta))
     try:
         os.replace(tmp, folder)  # atomic: a killed run never leaves a half-written shard
@@ -249,12 +286,15 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True)
     shards = []
     for path in tqdm(find_bags(bags), desc="cache bags", disable=not progress, unit="bag"):
         folder = cache_dir / bag_key(path)
-        if not (folder / "meta.json").exists():
-            episodes = read_bag(path)
+        if (folder / "meta.json").exists():
+            for problem in json.loads((folder / "meta.json").read_text())["source_problems"]:
+                log.warning("cached from an incomplete bag: %s", problem)
+        else:
+            episodes, problems = read_bag(path)
             if not episodes:
                 log.warning("%s holds no complete episode", path)
                 continue
-            _write_shard(folder, episodes)
+            _write_shard(folder, episodes, problems)
         shards.append(folder)
     if not shards:
         raise ValueError(f"no complete episodes in the bags under {bags}: training and `python -m training` "

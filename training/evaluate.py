@@ -45,15 +45,18 @@ def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORE
 
 def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, out: str | Path | None,
                    title: str | None = None, progress: bool = True, threads: int = 1,
-                   frames: tuple[int, ...] = FRAMES_SCORED) -> dict:
+                   frames: tuple[int, ...] = FRAMES_SCORED, record: bool = True) -> dict:
     model = EstimatorModel.load(model_path, threads=threads)
+    if record:
+        read_model_metrics(model_path)  # a corrupt file fails now, not after the evaluation
     ds = data.load_dataset(bags, cache, progress=progress)
     by_frames = predict_dataset(model, ds, frames, progress=progress)
     title = title or f"{model.model_id} on {bags}"
     if out is None:
         out = Path(model_path).with_suffix("").with_name(Path(model_path).stem + "_eval")
     results = write_report(by_frames, out, title)
-    update_model_metrics(model_path, {"evaluation": {Path(bags).name: summary(results)}})
+    if record:
+        print(f"recorded in {update_model_metrics(model_path, {'evaluation': {Path(bags).name: summary(results)}})}")
     table_rows = {k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}
     print(format_table(table_rows, title))
     print(f"report: {Path(out) / 'report.md'}")
@@ -76,6 +79,8 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--frames", action=FrameCounts, nargs="*", metavar="K",
                    help=f"prefix lengths to score, e.g. --frames 20 15 or --frames 20,15 (default, also with no "
                         f"value: {' '.join(map(str, FRAMES_SCORED))}; {FRAME_COUNT} is always scored)")
+    p.add_argument("--no-record", action="store_true",
+                   help="leave <model>.metrics.json alone (e.g. for the bundled model, whose file ships)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -83,8 +88,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 def run(args) -> dict:
     frames = tuple(sorted({FRAME_COUNT, *args.frames}, reverse=True)) if args.frames else FRAMES_SCORED
     return evaluate_model(args.model, args.bags, args.cache, args.out, args.title, not args.no_progress,
-                          args.threads, frames)
-
+                          args.threads, frames, record=not args.no_record)
 
 
 def metrics_path(model_path: str | Path) -> Path:
@@ -93,10 +97,25 @@ def metrics_path(model_path: str | Path) -> Path:
     return model_path.with_name(model_path.name.removesuffix(".onnx") + ".metrics.json")
 
 
+def read_model_metrics(model_path: str | Path) -> dict:
+    """The model's metrics JSON, or a fresh one if it has none yet."""
+    path = metrics_path(model_path)
+    if not path.exists():
+        return {"model": Path(model_path).name}
+    try:
+        current = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not valid JSON ({exc}); fix or remove it, or pass --no-record") from None
+    if not isinstance(current, dict):
+        raise ValueError(f"{path} holds a JSON {type(current).__name__}, not an object; fix or remove it, "
+                         "or pass --no-record")
+    return current
+
+
 def update_model_metrics(model_path: str | Path, update: dict) -> Path:
     """Merges `update` into the model's metrics JSON (nested dicts merged one level deep)."""
     path = metrics_path(model_path)
-    current = json.loads(path.read_text()) if path.exists() else {"model": Path(model_path).name}
+    current = read_model_metrics(model_path)
     for key, value in update.items():
         if isinstance(value, dict) and isinstance(current.get(key), dict):
             current[key].update(value)

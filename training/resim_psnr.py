@@ -19,7 +19,9 @@ import numpy as np
 
 from ad_sim.instances import Instance
 from ad_sim.materials import FAMILIES, FRAME_COUNT, SAMPLED_PARAMETERS, full_parameters
+from ad_sim.mpm import check_device
 from ad_sim.resimulate import PSNR_CAP, candidate_from_row, resimulation_psnr
+from training.data import EpisodeRejected, episode_video
 
 log = logging.getLogger(__name__)
 
@@ -28,17 +30,25 @@ MASK_TOPIC = f"/ad_sim/view_{FIT_VIEW}/mask"
 
 
 def bag_episodes(bags: str | Path):
-    """(bag, SimInstance message, [(stamp_ns, Image)] in stamp order) of every episode under `bags`
-    that has all FRAME_COUNT camera-0 frames; others are skipped with a warning."""
+    """(bag, SimInstance message, [(stamp_ns, Image)] in stamp order, (T, H, W) uint8 masks) of every
+    episode under `bags` that has all FRAME_COUNT camera-0 frames, each usable; others are skipped
+    with a warning. Truncated bags (a killed recorder) are read up to their last complete chunk,
+    as everywhere in training."""
     from ad_estimator.evaluate import episode_frames, find_bags
 
     for bag in find_bags([Path(bags)]):
-        for msg, frames in episode_frames(bag, MASK_TOPIC):
+        for msg, frames in episode_frames(bag, MASK_TOPIC, recover=True):
             if len(frames) != FRAME_COUNT:
                 log.warning("%s: episode %s has %d of %d frames; skipped", bag, msg.episode_id, len(frames),
                             FRAME_COUNT)
                 continue
-            yield bag, msg, sorted(frames, key=lambda f: f[0])
+            frames = sorted(frames, key=lambda f: f[0])
+            try:
+                video = episode_video(bag, msg.episode_id, MASK_TOPIC, frames)
+            except EpisodeRejected as exc:
+                log.warning("%s; episode skipped", exc)
+                continue
+            yield bag, msg, frames, video
 
 
 def instance_of(msg) -> Instance:
@@ -48,21 +58,14 @@ def instance_of(msg) -> Instance:
     return Instance(msg.episode_id, msg.split, msg.shape, family, full_parameters(family, sampled), int(msg.seed))
 
 
-def video_of(frames) -> np.ndarray:
-    """(T, H, W) uint8 {0, 255} masks of [(stamp_ns, Image)] frames."""
-    from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask
-
-    return np.stack([image_to_mask(image, MAX_IMAGE_PIXELS) for _, image in frames])
-
-
 def observed_from_bags(bags: str | Path, count: int = 0, seed: int = 0) -> tuple[list[Instance], np.ndarray]:
     """Instances (ground truth) and recorded camera-0 videos (N, 25, H, W) of the complete episodes,
-    or of a seeded random subset of `count` of them (see `select`); only those videos are decoded."""
+    or of a seeded random subset of `count` of them (see `select`)."""
     episodes = list(bag_episodes(bags))
     if not episodes:
         raise ValueError(f"no complete episode with {MASK_TOPIC} frames in the bags under {bags}")
     episodes = [episodes[i] for i in select(count, len(episodes), seed)]
-    return [instance_of(msg) for _, msg, _ in episodes], np.stack([video_of(frames) for _, _, frames in episodes])
+    return [instance_of(msg) for _, msg, _, _ in episodes], np.stack([video for *_, video in episodes])
 
 
 def select(count: int, total: int, seed: int) -> np.ndarray:
@@ -100,14 +103,15 @@ def model_psnr(model_path: str | Path, bags: str | Path, device: str = "cpu", co
     if not episodes:
         raise ValueError(f"no complete episode with {MASK_TOPIC} frames in the bags under {bags}")
     episodes = [episodes[i] for i in select(count, len(episodes), seed)]
-    estimates = [predict_episode(model, bag, msg, frames, model.info.frame_count) for bag, msg, frames in episodes]
+    estimates = [predict_episode(model, bag, msg, frames, model.info.frame_count, masks=list(video))
+                 for bag, msg, frames, video in episodes]
     predictions = to_metrics(estimates, model.info.parameter_names)
-    instances = [instance_of(msg) for _, msg, _ in episodes]
+    instances = [instance_of(msg) for _, msg, _, _ in episodes]
     candidates = [candidate_from_row(FAMILIES[c], row)
                   for c, row in zip(predictions.pred_class, predictions.pred_params)]
     start = time.perf_counter()
     psnr = resimulation_psnr(instances, candidates, device, FIT_VIEW,
-                             observed=np.stack([video_of(frames) for _, _, frames in episodes]), progress=progress)
+                             observed=np.stack([video for *_, video in episodes]), progress=progress)
     return {
         "model": str(model_path), "model_id": model.model_id, "bags": str(bags), "device": device,
         "metrics": metrics.compute_metrics(predictions),
@@ -137,6 +141,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 def run(args) -> dict:
     from ad_estimator.metrics import format_table
 
+    check_device(args.device)
     result = model_psnr(args.model, args.bags, args.device, args.instances, args.seed, not args.no_progress)
     out = Path(args.out or f"runs/resim_psnr/{result['model_id']}-{Path(args.bags).name}.json")
     out.parent.mkdir(parents=True, exist_ok=True)

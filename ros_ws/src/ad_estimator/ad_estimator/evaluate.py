@@ -3,27 +3,33 @@
 Every episode's mask frames go through the node's own code: images.image_to_mask, then the
 window's slots (window.clip_output: the slots the live window holds when the episode's stream
 ends), then model.predict. So the per-episode predictions equal what the live node publishes for
-the same frames. Metrics (SPEC 8) come from ad_estimator.metrics; --frames K adds the temporal
-out-of-distribution rows (only the first K frames observed). Needs no ROS runtime.
+the same frames. As in the node, a frame images.py rejects is skipped (with a warning, and counted)
+and an image size change restarts the window. An episode whose window holds fewer than K frame
+slots (cut short, or restarted) is left out of the K row, with a warning. Metrics (SPEC 8) come
+from ad_estimator.metrics; --frames K adds the temporal out-of-distribution rows (only the first K
+frames observed). Needs no ROS runtime.
 """
 from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass
+import tempfile
+import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from ad_estimator import metrics
-from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, image_to_mask
+from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns
 from ad_sim.rosbag import BagError, BagReader, group_episodes, one_line_warnings
 
 INSTANCE_TOPIC = "/ad_sim/instance"
 MASK_TOPIC = "/ad_sim/view_0/mask"
+IMAGE_TYPE = "sensor_msgs/msg/Image"
 
 
 @dataclass
@@ -41,8 +47,27 @@ class EpisodePrediction:
     raw_parameters: list[float]  # every parameter denormalised (metrics use these for any family)
     uncertainties: list[float]
     frames_used: int
+    slots: int  # frame slots the estimate covers (frames_used of them filled)
     oldest_stamp_ns: int
     newest_stamp_ns: int
+
+
+@dataclass
+class Evaluation:
+    """What evaluate() found: the scored predictions per K, and what it had to leave out."""
+
+    predictions: dict[int, list[EpisodePrediction]]
+    skipped_frames: list[dict] = field(default_factory=list)  # bag, episode_id, stamp_ns, reason
+    left_out: dict[int, list[dict]] = field(default_factory=dict)  # per K: bag, episode_id, reason
+
+    def problems(self) -> str:
+        """One line on what was skipped or left out ('' when nothing was)."""
+        parts = []
+        if self.skipped_frames:
+            parts.append(f"{len(self.skipped_frames)} mask frame(s) skipped, as the node rejects them")
+        if rows := [f"K = {k}: {len(v)}" for k, v in self.left_out.items() if v]:
+            parts.append(f"episodes left out of the rows {', '.join(rows)}")
+        return "; ".join(parts)
 
 
 def find_bags(paths: list[Path]) -> list[Path]:
@@ -65,6 +90,9 @@ def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = Fals
     """(instance, [(stamp_ns, Image)]) per episode of the bag, in order. `recover`: read a truncated
     or damaged file (a killed recorder) up to its last complete chunk, with a warning."""
     reader = BagReader(bag, topics=[INSTANCE_TOPIC, mask_topic], recover=recover)
+    if (carried := reader.topics().get(mask_topic, IMAGE_TYPE)) != IMAGE_TYPE:
+        raise BagError(f"topic {mask_topic} in {bag} carries {carried}, not {IMAGE_TYPE}; pass a mask topic "
+                       "with --topic (e.g. /ad_sim/view_0/mask)")
     for episode in group_episodes(reader, INSTANCE_TOPIC):
         frames = [(stamp_to_ns(m.header.stamp.sec, m.header.stamp.nanosec), m)
                   for _, m in episode.messages.get(mask_topic, [])]
@@ -89,7 +117,7 @@ def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed
         true_parameters=dict(zip(instance.parameter_names, (float(v) for v in instance.parameters))),
         material=estimate.material, probabilities=estimate.probabilities.tolist(),
         parameters=estimate.parameters.tolist(), raw_parameters=estimate.raw_parameters.tolist(),
-        uncertainties=estimate.uncertainties.tolist(), frames_used=out.frames_used,
+        uncertainties=estimate.uncertainties.tolist(), frames_used=out.frames_used, slots=len(out.valid),
         oldest_stamp_ns=out.oldest_stamp_ns, newest_stamp_ns=out.newest_stamp_ns)
 
 
@@ -108,31 +136,91 @@ def to_metrics(predictions: list[EpisodePrediction], parameter_names: tuple[str,
         episode_ids=[p.episode_id for p in predictions])
 
 
+def accepted_frames(bag: Path, instance, frames) -> tuple[list, list[np.ndarray], list[dict]]:
+    """The episode's frames the node would accept, their masks, and the ones it would reject."""
+    accepted, masks, rejected = [], [], []
+    for stamp, image in frames:
+        try:
+            masks.append(image_to_mask(image, MAX_IMAGE_PIXELS))
+            accepted.append((stamp, image))
+        except ImageRejected as exc:
+            rejected.append({"bag": str(bag), "episode_id": instance.episode_id, "stamp_ns": stamp, "reason": str(exc)})
+    return accepted, masks, rejected
+
+
+def stamp_text(stamp_ns: int) -> str:
+    return f"{stamp_ns / 1e9:.3f} s"
+
+
 def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], mask_topic: str = MASK_TOPIC,
-             progress: bool = True, recover: bool = False) -> dict[int, list[EpisodePrediction]]:
-    """Predictions per number of observed frames, every episode of every bag."""
+             progress: bool = True, recover: bool = False) -> Evaluation:
+    """Predictions per number of observed frames, every episode of every bag (see score_episode)."""
     if model.info.class_names != tuple(metrics.FAMILIES):
         raise ModelError(f"{model.info.path}: classes {model.info.class_names} differ from {metrics.FAMILIES}")
-    results: dict[int, list[EpisodePrediction]] = {k: [] for k in frame_counts}
+    if missing := [n for n in metrics.PARAMETER_NAMES if n not in model.info.parameter_names]:
+        raise ModelError(f"{model.info.path}: ad.parameter_names lacks {missing}, which the metrics need")
+    result = Evaluation({k: [] for k in frame_counts}, left_out={k: [] for k in frame_counts})
     with tqdm(desc="episodes", unit="ep", disable=not progress, file=sys.stderr) as bar:
         for bag in bags:
             for instance, frames in episode_frames(bag, mask_topic, recover):
-                # Every prefix length reuses the episode's conversions and frame encodings.
-                masks = [image_to_mask(image, MAX_IMAGE_PIXELS) for _, image in frames]
-                features: dict[tuple[int, int], np.ndarray] = {}
-
-                def encode(mask: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
-                    key = (id(mask), id(previous))
-                    if key not in features:
-                        features[key] = model.encode(mask, previous)
-                    return features[key]
-
-                for k in frame_counts:
-                    prediction = predict_episode(model, bag, instance, frames, k, masks=masks, encode=encode)
-                    if prediction is not None:
-                        results[k].append(prediction)
+                score_episode(model, bag, instance, frames, frame_counts, result)
                 bar.update()
-    return results
+    return result
+
+
+def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_counts: list[int],
+                  result: Evaluation) -> None:
+    """Adds the episode's prediction for each K to `result`. As in the node, rejected frames are
+    skipped; an episode whose window holds fewer than K frame slots is left out of the K row.
+    Each of these is noted in `result` and warned about, naming the bag and episode."""
+    where = f"{bag}: episode {instance.episode_id}"
+    frames, masks, rejected = accepted_frames(bag, instance, frames)
+    if rejected:
+        result.skipped_frames += rejected
+        warnings.warn(f"{where}: {len(rejected)} mask frame(s) skipped, as the node rejects them; the first at "
+                      f"stamp {stamp_text(rejected[0]['stamp_ns'])}: {rejected[0]['reason']}")
+    if changes := [i for i in range(1, len(masks)) if masks[i].shape != masks[i - 1].shape]:
+        before, after = masks[changes[0] - 1].shape, masks[changes[0]].shape
+        warnings.warn(f"{where}: the image size changes from {before[1]}x{before[0]} to {after[1]}x{after[0]} at "
+                      f"stamp {stamp_text(frames[changes[0]][0])}; as in the node, the frame window restarts there")
+    # Every prefix length reuses the episode's conversions and frame encodings.
+    features: dict[tuple[int, int], np.ndarray] = {}
+
+    def encode(mask: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+        key = (id(mask), id(previous))
+        if key not in features:
+            features[key] = model.encode(mask, previous)
+        return features[key]
+
+    try:
+        by_k = {k: predict_episode(model, bag, instance, frames, k, masks=masks, encode=encode) for k in frame_counts}
+    except ValueError as exc:  # e.g. stamps that repeat or go backwards within the episode
+        warnings.warn(f"{where}: left out of every row: {exc}")
+        by_k, left_out = {}, dict.fromkeys(frame_counts, str(exc))
+    else:
+        left_out = {k: f"its window holds {p.slots} of {k} frame slots"
+                    for k, p in by_k.items() if p is not None and p.slots < k}
+        if left_out:
+            longest = max(left_out)
+            warnings.warn(f"{where}: left out of the K = {', '.join(map(str, left_out))} row(s): fewer frame slots "
+                          f"than K (the K = {longest} window holds {by_k[longest].slots}; {len(frames)} frames "
+                          "accepted: the episode is cut short, or its window restarted)")
+    for k, reason in left_out.items():
+        result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id, "reason": reason})
+    for k, prediction in by_k.items():
+        if prediction is not None and k not in left_out:
+            result.predictions[k].append(prediction)
+
+
+def check_out(out: Path) -> None:
+    """The report folder can be made and written, checked before any work (creating nothing yet)."""
+    base = next(p for p in (out, *out.parents) if p.exists())  # the folder that would hold it
+    if not base.is_dir():
+        raise ValueError(f"--out {out}: {base} is not a folder; pass a folder for the report")
+    try:
+        tempfile.TemporaryFile(dir=base).close()
+    except OSError as exc:
+        raise ValueError(f"--out {out}: cannot write in {base} ({exc.strerror}); pass a writable folder") from exc
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -168,22 +256,37 @@ def main(argv: list[str] | None = None) -> int:
         if bad := [k for k in extra if not 1 <= k <= count]:
             raise ValueError(f"--frames {bad}: each K must be in 1..{count}")
         counts = sorted({count, *extra}, reverse=True)
-        results = evaluate(model, find_bags(args.bags), counts, args.topic, progress=not args.quiet,
-                           recover=args.recover)
+        out = args.out or Path("reports") / "evaluate" / model.model_id
+        check_out(out)
+        evaluation = evaluate(model, find_bags(args.bags), counts, args.topic, progress=not args.quiet,
+                              recover=args.recover)
     except (ModelError, BagError, ValueError) as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 1
+    results, problems = evaluation.predictions, evaluation.problems()
     if not results[count]:
-        print(f"evaluate: no episode with frames on {args.topic} in {[str(b) for b in args.bags]}", file=sys.stderr)
+        print(f"evaluate: no episode with {count} frames on {args.topic} in {[str(b) for b in args.bags]}"
+              + (f"; {problems}" if problems else ""), file=sys.stderr)
         return 1
-    out = args.out or Path("reports") / "evaluate" / model.model_id
     title = args.title or f"{model.model_id} on {', '.join(str(b) for b in args.bags)}"
     by_frames = {k: to_metrics(v, model.info.parameter_names) for k, v in results.items() if v}
-    report = metrics.write_report(by_frames, out, title)
-    (out / "predictions.json").write_text(metrics.json_text(
-        {"model_id": model.model_id, "model_path": str(args.model), "topic": args.topic,
-         "frames": {str(k): [vars(p) for p in v] for k, v in results.items()}}, indent=1))
+    try:
+        report = metrics.write_report(by_frames, out, title)
+        if problems:
+            with open(out / "report.md", "a") as md:
+                md.write(f"\nInput problems: {problems} (listed in predictions.json).\n")
+        (out / "predictions.json").write_text(metrics.json_text(
+            {"model_id": model.model_id, "model_path": str(args.model), "topic": args.topic,
+             "frames": {str(k): [vars(p) for p in v] for k, v in results.items()},
+             "skipped_frames": evaluation.skipped_frames,
+             "left_out": {str(k): v for k, v in evaluation.left_out.items()}}, indent=1))
+    except OSError as exc:
+        print(f"evaluate: cannot write the report to {out} ({exc}); free space there or pass another --out",
+              file=sys.stderr)
+        return 1
     print(metrics.format_table(report, title))
+    if problems:
+        print(f"\ninput problems: {problems} (see the warnings above)")
     print(f"\nreport: {out / 'report.md'}  predictions: {out / 'predictions.json'}")
     return 0
 

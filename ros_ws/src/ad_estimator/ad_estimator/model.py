@@ -145,8 +145,9 @@ def parse_metadata(meta: dict[str, str], path: Path) -> ModelInfo:
         raise ModelError(f"{path}: ad.parameter_ranges lacks {missing_ranges}")
     if unknown := [f for f in family_parameters if f not in class_names]:
         raise ModelError(f"{path}: ad.family_parameters names unknown families {unknown}")
-    if len(input_size) != 2 or min(input_size) <= 0 or frame_count <= 0 or not frame_interval > 0:
-        raise ModelError(f"{path}: bad input_size/frame_count/frame_interval metadata")
+    if len(input_size) != 2 or min(input_size) <= 0 or frame_count <= 0 or not 0 < frame_interval < math.inf:
+        raise ModelError(f"{path}: bad input_size/frame_count/frame_interval metadata ({meta['ad.input_size']}, "
+                         f"{meta['ad.frame_count']}, {meta['ad.frame_interval']}); re-export the model")
     frame_encoder = None
     frame_inputs = ("mask",)
     if kind == "streaming":
@@ -175,7 +176,8 @@ def _session(path: Path, threads: int, provider: str = "cpu") -> ort.InferenceSe
         raise ModelError(f"onnxruntime here has no {PROVIDERS[provider]} (available: {ort.get_available_providers()}); "
                          "install onnxruntime-gpu for cuda, or use provider cpu")
     if not path.is_file():
-        raise ModelError(f"model file not found: {path} (set the model_path parameter / --model to an exported .onnx)")
+        problem = f"{path} is a folder, not a model file" if path.is_dir() else f"model file not found: {path}"
+        raise ModelError(f"{problem} (set the model_path parameter / --model to an exported .onnx)")
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
@@ -196,6 +198,27 @@ def _require_io(session: ort.InferenceSession, path: Path, inputs: tuple[str, ..
                          f"found inputs {sorted(have_in)} and outputs {sorted(have_out)}")
 
 
+def _require_dims(session: ort.InferenceSession, path: Path, name: str, axes: tuple[int, ...],
+                  expected: tuple[int, ...], key: str) -> None:
+    """The input's static sizes at ``axes`` equal the metadata's (symbolic sizes are checked by the trial run)."""
+    shape = next(i.shape for i in session.get_inputs() if i.name == name)
+    if len(shape) <= max(axes) or any(isinstance(shape[a], int) and shape[a] != e for a, e in zip(axes, expected)):
+        raise ModelError(f"{path}: input {name!r} has shape {shape}, which does not fit metadata {key} "
+                         f"{list(expected)}; re-export the model")
+
+
+def _require_slot_count(session: ort.InferenceSession, path: Path, features: str, frame_count: int) -> None:
+    for name in (features, "valid"):  # both (B, T, ...)
+        _require_dims(session, path, name, (1,), (frame_count,), "ad.frame_count")
+
+
+def _quiet_run() -> ort.RunOptions:
+    """For the trial run at load: its failure becomes a ModelError, without onnxruntime's own error log."""
+    options = ort.RunOptions()
+    options.log_severity_level = 4
+    return options
+
+
 def softmax(logits: np.ndarray) -> np.ndarray:
     z = np.exp(logits - logits.max())
     return z / z.sum()
@@ -212,34 +235,52 @@ class EstimatorModel:
         self._outputs = ["logits", "params"] + (["params_logvar"] if self._has_logvar else [])
         self._last_prepared: tuple[np.ndarray, np.ndarray] | None = None  # (mask, prepare(mask)), see _prepared
         h, w = info.input_size
-        if frame_session is None:
-            self.feature_shape: tuple[int, ...] = (h, w)
-        else:
-            frame = np.zeros((1, len(info.frame_inputs), h, w), np.float32)
-            embedding = frame_session.run(["embedding"], {"frame": frame})[0]
-            self.feature_shape = tuple(embedding.shape[1:])
-        # Warm-up run: the first onnxruntime call allocates; keep that out of the first estimate's latency.
-        self.predict(np.zeros((1, *self.feature_shape), np.float32), np.ones(1, bool))
+        # A trial run at the metadata's sizes: graphs that do not fit their metadata fail here, at load, not on
+        # the first frame; it is also the warm-up (the first onnxruntime call allocates).
+        try:
+            if frame_session is None:
+                self.feature_shape: tuple[int, ...] = (h, w)
+            else:
+                frame = np.zeros((1, len(info.frame_inputs), h, w), np.float32)
+                embedding = frame_session.run(["embedding"], {"frame": frame}, _quiet_run())[0]
+                self.feature_shape = tuple(embedding.shape[1:])
+            outputs = self._run(np.zeros((1, *self.feature_shape), np.float32), np.ones(1, bool), _quiet_run())
+        except Exception as exc:  # noqa: BLE001 - onnxruntime raises several unrelated types
+            raise ModelError(f"{info.path}: a trial run at the metadata's input_size {list(info.input_size)} and "
+                             f"frame_count {info.frame_count} failed, so the graph does not fit its ad.* metadata "
+                             f"({' '.join(str(exc).split())}); re-export the model") from exc
+        named_by = {"logits": ("ad.class_names", info.class_names), "params": ("ad.parameter_names", info.parameter_names),
+                    "params_logvar": ("ad.parameter_names", info.parameter_names)}
+        for name, output in zip(self._outputs, outputs):
+            key, names = named_by[name]
+            if output.shape[-1] != len(names):
+                raise ModelError(f"{info.path}: output {name!r} has {output.shape[-1]} values but metadata {key} "
+                                 f"names {len(names)} ({', '.join(names)}); re-export the model")
 
     @classmethod
     def load(cls, path: str | Path, threads: int = 1, provider: str = "cpu") -> "EstimatorModel":
         """Open ``path`` (for streaming models the temporal head; its frame encoder is found via metadata)
         on the onnxruntime execution provider ``provider`` (a key of PROVIDERS).
 
-        Raises ModelError naming the file when it is missing, corrupt or its metadata is incomplete.
+        Raises ModelError naming the file when it is missing, corrupt, its metadata is incomplete or does
+        not fit the graph (input size, frame count, number of classes and parameters).
         """
         path = Path(path)
         session = _session(path, threads, provider)
         info = parse_metadata(session.get_modelmeta().custom_metadata_map, path)
         if info.kind == "clip":
             _require_io(session, path, ("masks", "valid"), ("logits", "params"))
+            _require_dims(session, path, "masks", (2, 3), info.input_size, "ad.input_size")
+            _require_slot_count(session, path, "masks", info.frame_count)
             return cls(info, session, None)
         if {i.name for i in session.get_inputs()} == {"frame"}:
             raise ModelError(f"{path} is a frame encoder; pass the temporal head model "
                              f"({path.name.replace('.frame.onnx', '.onnx')}) instead")
         _require_io(session, path, ("embeddings", "valid"), ("logits", "params"))
+        _require_slot_count(session, path, "embeddings", info.frame_count)
         frame_session = _session(info.frame_encoder, threads, provider)
         _require_io(frame_session, info.frame_encoder, ("frame",), ("embedding",))
+        _require_dims(frame_session, info.frame_encoder, "frame", (2, 3), info.input_size, "ad.input_size")
         shape = next(i.shape for i in frame_session.get_inputs() if i.name == "frame")
         channels = shape[1] if len(shape) == 4 else None  # (B, C, H, W); a symbolic C is not checked here
         if isinstance(channels, int) and channels != len(info.frame_inputs):
@@ -296,15 +337,19 @@ class EstimatorModel:
         if features.shape[1:] != self.feature_shape or len(features) != len(valid) or not 0 < len(valid) <= count:
             raise ValueError(f"features {features.shape} / valid {valid.shape} do not fit the model "
                              f"(up to {count} slots of {self.feature_shape})")
-        padded = np.zeros((1, count, *self.feature_shape), np.float32)
-        padded[0, : len(features)][valid] = features[valid]  # unobserved slots stay zero
-        mask = np.zeros((1, count), np.float32)
-        mask[0, : len(valid)] = valid
-        name = "masks" if self._frame_session is None else "embeddings"
-        outputs = self._session.run(self._outputs, {name: padded, "valid": mask})
+        outputs = self._run(features, valid)
         logits, params = outputs[0][0], outputs[1][0]
         logvar = outputs[2][0] if self._has_logvar else None
         return self._estimate(logits, params, logvar, int(valid.sum()), time.perf_counter() - start)
+
+    def _run(self, features: np.ndarray, valid: np.ndarray, options: ort.RunOptions | None = None) -> list[np.ndarray]:
+        """The head's outputs for checked features: padded to frame_count slots, the unobserved ones invalid."""
+        padded = np.zeros((1, self.info.frame_count, *self.feature_shape), np.float32)
+        padded[0, : len(features)][valid] = features[valid]  # unobserved slots stay zero
+        mask = np.zeros((1, self.info.frame_count), np.float32)
+        mask[0, : len(valid)] = valid
+        name = "masks" if self._frame_session is None else "embeddings"
+        return self._session.run(self._outputs, {name: padded, "valid": mask}, options)
 
     def _estimate(self, logits, params, logvar, frames_used, elapsed) -> Estimate:
         info = self.info

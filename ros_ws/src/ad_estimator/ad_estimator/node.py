@@ -294,6 +294,10 @@ class EstimatorNode(Node):
                 check_header(frame.height, frame.width, frame.encoding, frame.step, self.max_pixels)
             except ImageRejected as exc:
                 raise ValueError(f"frame {i}: {exc}") from exc
+            if (frame.width, frame.height) != (frames[0].width, frames[0].height):
+                # a stream would restart its window here; a clip is one episode of one camera
+                raise ValueError(f"frame {i}: {frame.width}x{frame.height}, frame 0: {frames[0].width}x"
+                                 f"{frames[0].height}; clip frames must all have the same size")
         start = time.perf_counter()
         masks = []
         for i, frame in enumerate(frames):

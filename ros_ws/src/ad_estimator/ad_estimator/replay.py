@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import sys
 import time
 from pathlib import Path
@@ -144,6 +145,10 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if not args.rate > 0:
         parser.error("--rate must be > 0")
+    if not 0 <= args.delay < math.inf:
+        parser.error("--delay must be a finite number of seconds >= 0")
+    if not args.wait_timeout >= 0:
+        parser.error("--wait-timeout must be a number of seconds >= 0")
     return args
 
 

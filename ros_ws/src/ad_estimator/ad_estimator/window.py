@@ -34,6 +34,7 @@ always one when the window is complete, and one on flush if slots were settled s
 """
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Callable
@@ -93,8 +94,9 @@ class FrameWindow:
                  slot_tolerance: float = DEFAULT_SLOT_TOLERANCE, policy: str = "episode", every_n: int = 1, min_frames: int = 10):
         if policy not in POLICIES:
             raise ValueError(f"output policy must be one of {POLICIES}, got {policy!r}")
-        if not frame_interval > 0 or frame_count < 1 or every_n < 1 or not 1 <= min_frames <= frame_count:
-            raise ValueError("need frame_interval > 0, frame_count >= 1, every_n >= 1, 1 <= min_frames <= frame_count")
+        if not 0 < frame_interval < math.inf or frame_count < 1 or every_n < 1 or not 1 <= min_frames <= frame_count:
+            raise ValueError("need a finite frame_interval > 0, frame_count >= 1, every_n >= 1, "
+                             "1 <= min_frames <= frame_count")
         if not 0 < slot_tolerance <= 2:
             raise ValueError("slot_tolerance is a fraction of the frame interval in (0, 2]")
         self.interval_ns = int(round(frame_interval * 1e9))
@@ -259,15 +261,16 @@ def clip_output(stamps_ns: list[int], masks: list[np.ndarray], encode: Encode,
                 frame_interval: float, frame_count: int,
                 slot_tolerance: float = DEFAULT_SLOT_TOLERANCE) -> WindowOutput | None:
     """The slots of a whole clip (oldest first), as one episode: what the stream would give at its
-    last frame, settled as at the end of a stream. Used by the EstimateMaterial service and evaluate."""
+    last frame, settled as at the end of a stream. Used by the EstimateMaterial service and evaluate.
+
+    As in a stream, a change of image size restarts the window: the output is then that of the
+    frames from the last change on (its episode_start_ns says where)."""
     stamps_ns = clip_stamps(list(stamps_ns), frame_interval)
     span = (stamps_ns[-1] - stamps_ns[0]) / 1e9 + 1.0  # one clip is one episode: no gap restarts
     window = FrameWindow(frame_interval, frame_count, gap_threshold=span, slot_tolerance=slot_tolerance,
                          policy="anytime", every_n=frame_count, min_frames=1)
     outputs = []
     for stamp, mask in zip(stamps_ns, masks):
-        if mask.shape != masks[0].shape:
-            raise ValueError("clip frames must all have the same size")
         outputs += window.add(stamp, mask, encode)
     outputs += window.flush()
     return outputs[-1] if outputs else None

@@ -137,8 +137,10 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(record))
         return 0
     from .instances import benchmark, load_instance_file
+    from .mpm import check_device
 
     try:
+        check_device(args.device)
         if args.instances:
             instances, name = load_instance_file(args.instances), args.instances.stem
         else:

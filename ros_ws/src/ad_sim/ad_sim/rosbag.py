@@ -484,6 +484,7 @@ class _FileScan:
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
     decoders: dict[int, Any] = field(default_factory=dict)  # by channel id, built on first use
+    truncated: str = ""  # what a killed writer left, when recovering: said once the file is scanned
 
 
 _RECORD_TYPES = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel}
@@ -512,8 +513,9 @@ class BagReader:
     in log-time order (ties in file order), decoding with mcap_ros2 (no ROS runtime).
 
     recover=True reads what a killed writer left: files without a summary are read up to
-    the last complete chunk, and corrupt chunks are skipped, each with a warning.
-    raw=True yields the CDR bytes instead of decoded messages.
+    the last complete chunk, and corrupt chunks are skipped, each with a warning that says
+    what was recovered or lost. raw=True yields the CDR bytes instead of decoded messages.
+    `problems` lists the reader's warnings, each once however often the files are scanned.
     """
 
     def __init__(
@@ -529,6 +531,7 @@ class BagReader:
         self.raw = raw
         self.topic_filter = None if topics is None else set(topics)
         self.metadata: dict | None = None
+        self.problems: list[str] = []
         self.files = self._find_files()
         self._decoder_factory = DecoderFactory()
 
@@ -552,14 +555,13 @@ class BagReader:
                 raise BagError(f"bag {self.path}: files named in metadata.yaml are missing: {', '.join(missing)}")
             extra = [p for p in found if p not in listed]
             if extra:
-                warnings.warn(f"bag {self.path}: reading .mcap files not named in metadata.yaml: {extra}", stacklevel=3)
+                self._warn(f"bag {self.path}: reading .mcap files not named in metadata.yaml: {extra}")
             files = listed + extra
         else:
             if found:
-                warnings.warn(
+                self._warn(
                     f"bag {self.path} has no metadata.yaml (was the writer killed?); "
-                    f"reading the {len(found)} .mcap file(s) found",
-                    stacklevel=3,
+                    f"reading the {len(found)} .mcap file(s) found"
                 )
             files = found
         if not files:
@@ -617,25 +619,44 @@ class BagReader:
         except Exception as exc:
             raise BagError(f"{scan.path}: message on {channel.topic} does not decode as {scan.schemas[channel.schema_id].name}: {exc}") from exc
 
-    def _problem(self, message: str) -> None:
+    def _warn(self, message: str) -> None:
+        # topics() and iteration scan a summary-less file alike: one warning per problem.
+        if message not in self.problems:
+            self.problems.append(message)
+            warnings.warn(message, stacklevel=3)
+
+    def _problem(self, message: str, recovery: str) -> None:
+        """A damaged part of a file: an error, or when recovering a warning ending in what was done about it."""
         if not self.recover:
             raise BagError(message)
-        warnings.warn(message, stacklevel=4)
+        self._warn(f"{message}; {recovery}")
+
+    def _truncated(self, scan: _FileScan, what: str, to_recover: str) -> None:
+        """A file a killed writer left (`what`: "is empty (...)"): an error saying what --recover
+        would do, or when recovering noted for the warning after its scan (what was recovered)."""
+        if not self.recover:
+            raise BagError(f"{scan.path} {what}. {to_recover} with --recover (BagReader(recover=True))")
+        scan.truncated = what
 
     def _read_summary(self, scan: _FileScan, data) -> list[ChunkIndex] | None:
         """Chunk indexes (and the schemas and channels into `scan`) from the file's summary.
 
         A file that does not start with the MCAP magic is an error even when recovering. None if the
         file has no footer (a killed writer: an error unless recovering) or no summary."""
-        if data[:MAGIC_SIZE] != MCAP_MAGIC:
-            raise BagError(f"{scan.path} is not an MCAP file (starts with {bytes(data[:MAGIC_SIZE])!r})")
         size = len(data)
+        start = bytes(data[:MAGIC_SIZE])
+        if start != MCAP_MAGIC:
+            if not MCAP_MAGIC.startswith(start):
+                raise BagError(f"{scan.path} is not an MCAP file (starts with {start!r})")
+            # Nothing or part of the magic: the writer was killed as it created the file.
+            self._truncated(scan, "is empty (was the writer killed?)" if size == 0
+                            else f"is truncated inside the MCAP magic ({size} bytes; was the writer killed?)",
+                            "Read the bag without it")
+            return None
         footer_at = size - MAGIC_SIZE - _FOOTER_RECORD_SIZE
         if size < 2 * MAGIC_SIZE + _FOOTER_RECORD_SIZE or data[-MAGIC_SIZE:] != MCAP_MAGIC or data[footer_at] != Opcode.FOOTER:
-            self._problem(
-                f"{scan.path} is truncated: no MCAP footer ({size} bytes; was the writer killed?). "
-                "Read every complete chunk of it with --recover (BagReader(recover=True))"
-            )
+            self._truncated(scan, f"is truncated: no MCAP footer ({size} bytes; was the writer killed?)",
+                            "Read every complete chunk of it")
             return None
         footer = Footer.read(ReadDataStream(io.BytesIO(data[footer_at + 9 : size - MAGIC_SIZE])))
         if footer.summary_start == 0:
@@ -650,7 +671,8 @@ class BagReader:
                 elif isinstance(record, Channel):
                     scan.channels[record.id] = record
         except (McapError, struct.error, ValueError) as exc:
-            self._problem(f"{scan.path}: corrupt summary section at byte {footer.summary_start}: {exc}")
+            self._problem(f"{scan.path}: corrupt summary section at byte {footer.summary_start}: {exc}",
+                          "reading the data section instead")
             return None
         return chunk_indexes
 
@@ -675,6 +697,7 @@ class BagReader:
         order = 0
         pos = MAGIC_SIZE
         size = len(data)
+        cut_at = None  # where the incomplete last record of a recovered file starts
 
         def release(until: int | None) -> Iterator[tuple[int, int, Channel, bytes]]:
             while pending and (until is None or pending[0][0] <= until):
@@ -682,16 +705,20 @@ class BagReader:
 
         while pos < size:
             if pos + 9 > size:
-                self._problem(f"{scan.path} is truncated at byte {pos} (incomplete record header)")
+                if not self.recover:
+                    raise BagError(f"{scan.path} is truncated at byte {pos} (incomplete record header)")
+                cut_at = pos
                 break
             opcode = data[pos]
             (length,) = struct.unpack_from("<Q", data, pos + 1)
             end = pos + 9 + length
             if end > size:
-                self._problem(
-                    f"{scan.path} is truncated or corrupt at byte {pos}: a record (opcode 0x{opcode:02x}) of "
-                    f"{length} bytes runs past the end of the file ({size} bytes)"
-                )
+                if not self.recover:
+                    raise BagError(
+                        f"{scan.path} is truncated or corrupt at byte {pos}: a record (opcode 0x{opcode:02x}) of "
+                        f"{length} bytes runs past the end of the file ({size} bytes)"
+                    )
+                cut_at = pos
                 break
             try:
                 if opcode == Opcode.CHUNK:
@@ -704,7 +731,10 @@ class BagReader:
                 else:
                     records = []
             except Exception as exc:  # decompression, CRC and parse failures of this record
-                self._problem(f"{scan.path}: corrupt record (opcode 0x{opcode:02x}) at byte {pos}: {type(exc).__name__}: {exc}")
+                self._problem(
+                    f"{scan.path}: corrupt record (opcode 0x{opcode:02x}) at byte {pos}: {type(exc).__name__}: {exc}",
+                    "skipped it and the messages in it",
+                )
                 pos = end
                 continue
             for record in records:
@@ -715,7 +745,8 @@ class BagReader:
                 elif isinstance(record, Message):
                     channel = scan.channels.get(record.channel_id)
                     if channel is None:
-                        self._problem(f"{scan.path}: message at byte {pos} names unknown channel {record.channel_id}")
+                        self._problem(f"{scan.path}: message at byte {pos} names unknown channel {record.channel_id}",
+                                      "skipped it")
                         continue
                     heapq.heappush(pending, (record.log_time, order, channel, record.data))
                     order += 1
@@ -724,6 +755,9 @@ class BagReader:
                 if following < len(chunk_offsets):
                     yield from release(release_at[chunk_offsets[following]])
             pos = end
+        if scan.truncated or cut_at is not None:
+            lost = "" if cut_at is None else f"; the last {size - cut_at} bytes (an incomplete record at byte {cut_at}) are lost"
+            self._warn(f"{scan.path} {scan.truncated or 'is truncated or corrupt'}: recovered {order} messages{lost}")
         yield from release(None)
 
 

@@ -154,7 +154,8 @@ def parameter_help(parameters) -> str:
 
 
 def handle_help(prog: str, doc: str, parameters, args: list[str] | None) -> None:
-    """`--help` before any ROS argument: print the description and parameters, exit."""
+    """The command line of a node whose knobs are ROS parameters: `--help` prints the description
+    and parameters and exits; anything else outside `--ros-args ...` is a usage error (exit 2)."""
     import argparse
     import sys
 
@@ -163,7 +164,7 @@ def handle_help(prog: str, doc: str, parameters, args: list[str] | None) -> None
     parser = argparse.ArgumentParser(
         prog=prog, description=doc, epilog=parameter_help(parameters), formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.parse_known_args(remove_ros_args(sys.argv if args is None else args)[1:])
+    parser.parse_args(remove_ros_args(sys.argv if args is None else args)[1:])
 
 
 class SimNode(Node):
