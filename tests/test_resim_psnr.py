@@ -97,6 +97,12 @@ def test_an_unusable_frame_loses_its_episode_only(tmp_path, caplog):
     assert [i.episode_id for i in instances] == expected[:1] + expected[2:]
     assert any(m.startswith(f"{tmp_path / 'bad'}: episode {expected[1]}: {resim_psnr.MASK_TOPIC} frame stamped "
                             f"{bad_stamp / 1e9:.3f} s: unsupported encoding '32FC1'") for m in caplog.messages)
+    # Only the chosen subset is decoded: a subset without that episode meets no bad frame.
+    seed = next(seed for seed in range(100) if 1 not in resim_psnr.select(2, len(expected), seed))
+    caplog.clear()
+    instances, videos = resim_psnr.observed_from_bags(tmp_path / "bad", 2, seed)
+    assert [i.episode_id for i in instances] == [expected[j] for j in resim_psnr.select(2, len(expected), seed)]
+    assert videos.shape[0] == 2 and not any("32FC1" in m for m in caplog.messages)
 
 
 def test_a_device_this_machine_lacks_is_refused_before_any_work(tmp_path, capsys):

@@ -30,10 +30,9 @@ MASK_TOPIC = f"/ad_sim/view_{FIT_VIEW}/mask"
 
 
 def bag_episodes(bags: str | Path):
-    """(bag, SimInstance message, [(stamp_ns, Image)] in stamp order, (T, H, W) uint8 masks) of every
-    episode under `bags` that has all FRAME_COUNT camera-0 frames, each usable; others are skipped
-    with a warning. Truncated bags (a killed recorder) are read up to their last complete chunk,
-    as everywhere in training."""
+    """(bag, SimInstance message, [(stamp_ns, Image)] in stamp order) of every episode under `bags`
+    that has all FRAME_COUNT camera-0 frames; others are skipped with a warning. Truncated bags (a
+    killed recorder) are read up to their last complete chunk, as everywhere in training."""
     from ad_estimator.evaluate import episode_frames, find_bags
 
     for bag in find_bags([Path(bags)]):
@@ -42,13 +41,26 @@ def bag_episodes(bags: str | Path):
                 log.warning("%s: episode %s has %d of %d frames; skipped", bag, msg.episode_id, len(frames),
                             FRAME_COUNT)
                 continue
-            frames = sorted(frames, key=lambda f: f[0])
-            try:
-                video = episode_video(bag, msg.episode_id, MASK_TOPIC, frames)
-            except EpisodeRejected as exc:
-                log.warning("%s; episode skipped", exc)
-                continue
-            yield bag, msg, frames, video
+            yield bag, msg, sorted(frames, key=lambda f: f[0])
+
+
+def selected_episodes(bags: str | Path, count: int = 0, seed: int = 0) -> list[tuple]:
+    """(bag, SimInstance message, frames, (T, H, W) uint8 masks) of the complete episodes, or of a
+    seeded random subset of `count` of them (see `select`). Only the chosen episodes are decoded;
+    one with an unusable frame is skipped with a warning (the subset is then smaller)."""
+    episodes = list(bag_episodes(bags))
+    if not episodes:
+        raise ValueError(f"no complete episode with {MASK_TOPIC} frames in the bags under {bags}")
+    chosen = []
+    for i in select(count, len(episodes), seed):
+        bag, msg, frames = episodes[i]
+        try:
+            chosen.append((bag, msg, frames, episode_video(bag, msg.episode_id, MASK_TOPIC, frames)))
+        except EpisodeRejected as exc:
+            log.warning("%s; episode skipped", exc)
+    if not chosen:
+        raise ValueError(f"no usable episode with {MASK_TOPIC} frames in the bags under {bags} (see the warnings)")
+    return chosen
 
 
 def instance_of(msg) -> Instance:
@@ -60,11 +72,8 @@ def instance_of(msg) -> Instance:
 
 def observed_from_bags(bags: str | Path, count: int = 0, seed: int = 0) -> tuple[list[Instance], np.ndarray]:
     """Instances (ground truth) and recorded camera-0 videos (N, 25, H, W) of the complete episodes,
-    or of a seeded random subset of `count` of them (see `select`)."""
-    episodes = list(bag_episodes(bags))
-    if not episodes:
-        raise ValueError(f"no complete episode with {MASK_TOPIC} frames in the bags under {bags}")
-    episodes = [episodes[i] for i in select(count, len(episodes), seed)]
+    or of a seeded random subset of `count` of them (see `selected_episodes`)."""
+    episodes = selected_episodes(bags, count, seed)
     return [instance_of(msg) for _, msg, _, _ in episodes], np.stack([video for *_, video in episodes])
 
 
@@ -99,10 +108,7 @@ def model_psnr(model_path: str | Path, bags: str | Path, device: str = "cpu", co
     from ad_estimator.model import EstimatorModel
 
     model = EstimatorModel.load(model_path)
-    episodes = list(bag_episodes(bags))
-    if not episodes:
-        raise ValueError(f"no complete episode with {MASK_TOPIC} frames in the bags under {bags}")
-    episodes = [episodes[i] for i in select(count, len(episodes), seed)]
+    episodes = selected_episodes(bags, count, seed)
     estimates = [predict_episode(model, bag, msg, frames, model.info.frame_count, masks=list(video))
                  for bag, msg, frames, video in episodes]
     predictions = to_metrics(estimates, model.info.parameter_names)
