@@ -175,9 +175,10 @@ def main(argv=None) -> int:
     args.instances = args.instances or args.batch
     if args.block_dim:
         mpm.BLOCK_DIM = args.block_dim
-    wp.init()
-    if args.device.startswith("cuda") and not wp.is_cuda_available():
-        parser.error("no CUDA device visible to Warp; use --device cpu or run on the GPU machine")
+    try:
+        mpm.check_device(args.device)
+    except ValueError as exc:
+        parser.error(str(exc))
     figures = bench_episodes(args) if args.episodes else bench_scenes(args)
     for key, value in figures.items():
         print(f"{key:>22}: {value:.4g}" if isinstance(value, float) else f"{key:>22}: {value}")
