@@ -64,14 +64,14 @@ def run_no_ros(args, model: EstimatorModel) -> dict:
     latencies, model_times = [], []
     for clip in episode_masks(args.bag, args.episodes):
         window = FrameWindow(model.info.frame_interval, model.info.frame_count, policy=args.policy,
-                             every_n=args.every_n, min_frames=args.min_frames)
+                             every_n=args.every_n, min_frames=args.min_frames, history=model.info.previous_frames)
         for k, mask in enumerate(clip):
             image = FakeImage(mask)
             encode_time = [0.0]
 
-            def encode(binary, previous):
+            def encode(binary, earlier):
                 encode_start = time.perf_counter()
-                feature = model.encode(binary, previous)
+                feature = model.encode(binary, earlier)
                 encode_time[0] = time.perf_counter() - encode_start
                 return feature
 

@@ -14,6 +14,8 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from ad_estimator.model import frame_inputs
+
 CLASS_NAMES = ["jelly", "plasticine", "sand"]
 PARAMETER_NAMES = ["youngs_modulus", "poissons_ratio", "yield_stress", "friction_angle"]
 PARAMETER_RANGES = {
@@ -118,20 +120,25 @@ def build_clip_model(path: Path, input_size=(32, 32), frame_count: int = 25, dim
 
 
 def build_streaming_model(directory: Path, name: str = "student", input_size=(32, 32), frame_count: int = 25,
-                          dim: int = 16, seed: int = 0, model_id: str = "test-streaming") -> Path:
-    """``<name>.frame.onnx`` (frame -> embedding) and ``<name>.onnx`` (temporal head); returns the head's path."""
+                          dim: int = 16, seed: int = 0, model_id: str = "test-streaming", previous_frames: int = 0) -> Path:
+    """``<name>.frame.onnx`` (frame -> embedding) and ``<name>.onnx`` (temporal head); returns the head's path.
+    The frame encoder takes the mask and ``previous_frames`` earlier ones as channels."""
     rng = np.random.default_rng(seed)
     h, w = input_size
+    channels = 1 + previous_frames
     frame_file = f"{name}.frame.onnx"
     meta = metadata("streaming", model_id, input_size, frame_count, frame_file)
+    if previous_frames:
+        meta["ad.frame_inputs"] = json.dumps(frame_inputs(previous_frames))
     encoder = helper.make_graph(
         [helper.make_node("Flatten", ["frame"], ["flat"], axis=1),
          helper.make_node("MatMul", ["flat", "w_frame"], ["frame_mm"]),
          helper.make_node("Tanh", ["frame_mm"], ["embedding"])],
         "frame_encoder",
-        [helper.make_tensor_value_info("frame", TensorProto.FLOAT, ["B", 1, h, w])],
+        [helper.make_tensor_value_info("frame", TensorProto.FLOAT, ["B", channels, h, w])],
         [helper.make_tensor_value_info("embedding", TensorProto.FLOAT, ["B", dim])],
-        [numpy_helper.from_array(rng.normal(0, 4.0 / math.sqrt(h * w), (h * w, dim)).astype(np.float32), "w_frame")])
+        [numpy_helper.from_array(rng.normal(0, 4.0 / math.sqrt(h * w), (channels * h * w, dim)).astype(np.float32),
+                                 "w_frame")])
     _save(encoder, meta, directory / frame_file)
     head_nodes, head_init, outs = _head_nodes("embeddings", "valid", frame_count, dim, rng, True)
     head = helper.make_graph(

@@ -55,6 +55,24 @@ def test_per_episode_prediction_is_the_models_on_those_frames(setup, tmp_path):
     assert prediction.episode_id == instance.episode_id and prediction.oldest_stamp_ns == 0
 
 
+def test_earlier_frames_reach_the_frame_encoder_and_each_frame_is_encoded_once(setup, tmp_path, monkeypatch):
+    """A frame encoder that sees 3 earlier frames: every prefix's estimate is that of each frame encoded
+    with its 3 predecessors, newest first; the prefixes share the episode's encodings."""
+    _, bag = setup
+    model = EstimatorModel.load(build_streaming_model(tmp_path, previous_frames=3))
+    encode = model.encode
+    calls = []
+    monkeypatch.setattr(model, "encode", lambda mask, earlier=(): calls.append(1) or encode(mask, earlier))
+    result = evaluate.evaluate(model, [bag], [25, 18], progress=False)
+    assert len(calls) == 25 * len(EPISODES)
+    for index in range(len(EPISODES)):
+        masks = falling_masks(seed=100 + index)
+        features = np.stack([encode(mask, list(masks[:t][::-1])) for t, mask in enumerate(masks)])
+        for k in (25, 18):
+            direct = model.predict(features[:k], np.ones(k, bool))
+            np.testing.assert_allclose(result.predictions[k][index].probabilities, direct.probabilities, rtol=1e-6)
+
+
 def test_clear_errors(setup, tmp_path, capsys):
     model, bag = setup
     assert evaluate.main(["--model", str(tmp_path / "absent.onnx"), "--bags", str(bag)]) == 1

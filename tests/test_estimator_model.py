@@ -4,12 +4,13 @@ import types
 
 import numpy as np
 import onnx
+import onnxruntime as ort
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ad_estimator.images import ImageRejected, image_to_mask
-from ad_estimator.model import EstimatorModel, ModelError
+from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError, frame_inputs
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
 
 
@@ -164,18 +165,76 @@ def _with_metadata(path, **entries):
     onnx.save(model, str(path))
 
 
-@pytest.mark.parametrize("inputs, message", [
-    ('["mask", "depth"]', r"ad.frame_inputs \['mask', 'depth'\] is not one this estimator knows"),
-    ('["mask", "previous_mask"]', r"s.frame.onnx takes 1 input channels, its metadata names \['mask', 'previous_mask'\]"),
-    ("mask", "ad.frame_inputs.*not valid JSON"),
-    ('{"mask": 1}', r"ad.frame_inputs \[\{'mask': 1\}\] is not one this estimator knows"),
-    ("2", r"ad.frame_inputs \[2\] is not one this estimator knows"),
+def test_frame_inputs_name_the_mask_then_the_earlier_frames():
+    assert frame_inputs(0) == ("mask",)
+    assert frame_inputs(1) == ("mask", "previous_mask")
+    assert frame_inputs(3) == ("mask", "previous_mask", "previous_mask_2", "previous_mask_3")
+
+
+@pytest.mark.parametrize("previous_frames, inputs, message", [
+    (0, '["mask", "depth"]', r"ad.frame_inputs \['mask', 'depth'\] is not one this estimator knows"),
+    (0, '["mask", "previous_mask"]', r"s.frame.onnx takes 1 input channels, its metadata names \['mask', 'previous_mask'\]"),
+    (2, '["mask", "previous_mask"]', r"s.frame.onnx takes 3 input channels, its metadata names \['mask', 'previous_mask'\]"),
+    (1, '["mask", "previous_mask_2"]', r"ad.frame_inputs \['mask', 'previous_mask_2'\] is not one this estimator knows"),
+    (2, '["mask", "previous_mask_2", "previous_mask"]', r"ad.frame_inputs \['mask', 'previous_mask_2', 'previous_mask'\] "
+                                                       r"is not one this estimator knows"),
+    (1, '["previous_mask", "mask"]', r"ad.frame_inputs \['previous_mask', 'mask'\] is not one this estimator knows"),
+    (2, '["mask", "previous_mask", "previous_mask_3"]', r"ad.frame_inputs .* is not one this estimator knows"),
+    (0, "[]", r"ad.frame_inputs \[\] is not one this estimator knows"),
+    (0, "mask", "ad.frame_inputs.*not valid JSON"),
+    (0, '{"mask": 1}', r"ad.frame_inputs \[\{'mask': 1\}\] is not one this estimator knows"),
+    (0, "2", r"ad.frame_inputs \[2\] is not one this estimator knows"),
 ])
-def test_frame_inputs_the_encoder_does_not_match_are_refused(tmp_path, inputs, message):
-    head = build_streaming_model(tmp_path, name="s")
+def test_frame_inputs_the_encoder_does_not_match_are_refused(tmp_path, previous_frames, inputs, message):
+    head = build_streaming_model(tmp_path, name="s", previous_frames=previous_frames)
     _with_metadata(head, **{"ad.frame_inputs": inputs})
     with pytest.raises(ModelError, match=message):
         EstimatorModel.load(head)
+
+
+def _embedding(model, frame):
+    """The frame encoder run directly on a (C, H, W) stack of prepared masks."""
+    return ort.InferenceSession(str(model.info.frame_encoder)).run(["embedding"], {"frame": frame[None]})[0][0]
+
+
+@pytest.mark.parametrize("previous_frames, given, layout", [
+    (1, 0, [4, 4]), (1, 1, [4, 3]), (1, 4, [4, 3]),
+    (2, 0, [4, 4, 4]), (2, 1, [4, 3, 3]), (2, 2, [4, 3, 2]), (2, 4, [4, 3, 2]),
+    (3, 0, [4, 4, 4, 4]), (3, 1, [4, 3, 3, 3]), (3, 2, [4, 3, 2, 2]), (3, 3, [4, 3, 2, 1]), (3, 4, [4, 3, 2, 1]),
+])
+def test_encode_stacks_the_earlier_frames_newest_first_the_oldest_standing_in(tmp_path, previous_frames, given, layout):
+    """Frame 4 with `given` of its earlier frames 3, 2, 1, 0: channel k is the k-th earlier frame;
+    where fewer are given, the oldest one given (or the frame itself) stands in; frames beyond
+    previous_frames are not read."""
+    model = EstimatorModel.load(build_streaming_model(tmp_path, previous_frames=previous_frames))
+    assert model.info.frame_inputs == frame_inputs(previous_frames) and model.info.previous_frames == previous_frames
+    masks = falling_masks(5, seed=3)
+    expected = _embedding(model, np.stack([model.prepare(masks[i]) for i in layout]))
+    np.testing.assert_allclose(model.encode(masks[4], list(masks[3::-1])[:given]), expected, rtol=1e-5, atol=1e-6)
+    # The test encoder tells the frames and their order apart.
+    assert not np.allclose(model.encode(masks[4], [masks[3], masks[2]]), model.encode(masks[4], [masks[2], masks[3]]))
+
+
+def test_encode_of_the_bundled_model_sees_the_previous_frame():
+    model = EstimatorModel.load(BUNDLED_MODEL)
+    assert model.info.frame_inputs == ("mask", "previous_mask") and model.info.previous_frames == 1
+    previous, mask = falling_masks(2, seed=4)
+    np.testing.assert_allclose(model.encode(mask, [previous]),
+                               _embedding(model, np.stack([model.prepare(mask), model.prepare(previous)])),
+                               rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(model.encode(mask), model.encode(mask, [mask]), rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("previous_frames", [0, 1, 3])
+def test_each_mask_of_a_stream_is_resized_once(tmp_path, previous_frames, monkeypatch):
+    model = EstimatorModel.load(build_streaming_model(tmp_path, previous_frames=previous_frames))
+    prepared = []
+    prepare = model.prepare
+    monkeypatch.setattr(model, "prepare", lambda mask: prepared.append(mask) or prepare(mask))
+    masks = list(falling_masks(10))
+    for t, mask in enumerate(masks):
+        model.encode(mask, masks[t - 1::-1] if t else [])
+    assert len(prepared) == len(masks)
 
 
 def test_passing_the_frame_encoder_says_which_file_to_pass(tmp_path):

@@ -70,7 +70,7 @@ def publish_episode(t, masks, t0, step=DT):
 def offline(model_path, masks, stamps, policy="episode", **kw):
     """The expected estimates: model + window run directly."""
     model = EstimatorModel.load(model_path)
-    window = FrameWindow(0.025, 25, policy=policy, **kw)
+    window = FrameWindow(0.025, 25, policy=policy, history=model.info.previous_frames, **kw)
     outputs = []
     for mask, stamp in zip(masks, stamps):
         outputs += window.add(stamp, mask, model.encode)
@@ -194,6 +194,26 @@ def test_estimate_service_answers_a_clip(ros, model_paths):
     future = client.call_async(EstimateMaterial.Request())
     assert wait_for(future.done)
     assert not future.result().success and "empty" in future.result().message
+
+
+def test_streams_and_clips_reach_the_frame_encoder_with_their_earlier_frames(ros, tmp_path):
+    """A frame encoder that sees 3 earlier frames: the streamed episode's estimate and the service's
+    answer for the same clip are those of each frame encoded with its 3 predecessors, newest first."""
+    model_path = build_streaming_model(tmp_path, previous_frames=3)
+    model = EstimatorModel.load(model_path)
+    masks = falling_masks(seed=12)
+    features = np.stack([model.encode(mask, list(masks[:t][::-1])) for t, mask in enumerate(masks)])
+    expected = model.predict(features, np.ones(25, bool))
+    t = start(ros, model_path)
+    publish_episode(t, masks, 10**9)
+    assert wait_for(lambda: len(t.estimates) >= 1)
+    np.testing.assert_allclose(t.estimates[0].class_probabilities, expected.probabilities, rtol=1e-6)
+    np.testing.assert_allclose(t.estimates[0].parameters, expected.parameters, rtol=1e-6)
+    client = t.client.create_client(EstimateMaterial, "/ad_estimator/estimate")
+    assert client.wait_for_service(timeout_sec=5)
+    future = client.call_async(EstimateMaterial.Request(frames=[image_msg(m, 0) for m in masks]))
+    assert wait_for(future.done) and future.result().success, future.result().message
+    np.testing.assert_allclose(future.result().estimate.class_probabilities, expected.probabilities, rtol=1e-6)
 
 
 def test_diagnostics(ros, model_paths):

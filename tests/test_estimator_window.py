@@ -18,7 +18,7 @@ def feed(window, stamps, size=SIZE):
     """Offer frames whose feature is their own stamp; returns every output."""
     outputs = []
     for s in stamps:
-        outputs += window.add(s, frame(size), lambda _frame, _previous, s=s: np.array([float(s)]))
+        outputs += window.add(s, frame(size), lambda _frame, _earlier, s=s: np.array([float(s)]))
     return outputs
 
 
@@ -107,7 +107,7 @@ def test_random_streams_keep_invariants(events, policy, every_n, min_frames):
             window.reset()
         stamp += step
 
-        def encode(_frame, _previous, s=stamp):
+        def encode(_frame, _earlier, s=stamp):
             nonlocal calls
             calls += 1
             return np.array([float(s)])
@@ -206,25 +206,95 @@ def test_encode_only_for_frames_that_land_in_slots():
     assert calls == [k * DT for k in range(25)]
 
 
+def labelled(label):
+    """A frame that carries its label in every pixel."""
+    return np.full(SIZE, label, np.int64)
+
+
+def offer(window, stamp, label, seen):
+    """Offer a labelled frame; notes (label, labels of the earlier frames) when it is encoded."""
+    def encode(current, earlier):
+        seen.append((int(current[0, 0]), [int(e[0, 0]) for e in earlier]))
+        return np.zeros(1, np.float32)
+
+    window.add(stamp, labelled(label), encode)
+
+
+def kept_frames(window):
+    """Slot -> label of the frame the window still keeps there."""
+    return {k: int(s.frame[0, 0]) for k, s in enumerate(window._slots) if s is not None and s.frame is not None}
+
+
 def test_encode_gets_the_frame_of_the_latest_earlier_filled_slot():
-    """For frame encoders that also see the previous observed frame: None for an episode's first
-    frame, slots left empty are skipped, a restart starts again from None."""
+    """The default history, for frame encoders that also see the previous observed frame: none for
+    an episode's first frame, slots left empty are skipped, a restart starts again from none."""
     window = FrameWindow(0.025, 25, slot_tolerance=0.4)
     seen = []
-
-    def offer(stamp):
-        image = np.full(SIZE, stamp // DT, np.int64)  # each frame carries its slot number
-
-        def encode(current, previous):
-            seen.append((int(current[0, 0]), None if previous is None else int(previous[0, 0])))
-            return np.zeros(1, np.float32)
-
-        window.add(stamp, image, encode)
-
     for k in (0, 1, 2, 5, 6):  # slots 3 and 4 stay empty
-        offer(k * DT)
-    offer(6 * DT + 10**9)  # a gap: a new episode
-    assert seen == [(0, None), (1, 0), (2, 1), (5, 2), (6, 5), (46, None)]
+        offer(window, k * DT, k, seen)
+    offer(window, 6 * DT + 10**9, 46, seen)  # a gap: a new episode
+    assert seen == [(0, []), (1, [0]), (2, [1]), (5, [2]), (6, [5]), (46, [])]
+
+
+def test_encode_gets_the_frames_of_the_latest_history_filled_slots_newest_first():
+    """history 3: fewer at the episode's start; a frame filling two slots (35, at 3.5 dt) is encoded
+    with the frames before its first slot and is found once per slot by later frames; an empty
+    slot (7) is skipped; a restart starts again from none. Only frames a later one can need are kept."""
+    window = FrameWindow(0.025, 25, slot_tolerance=0.5, history=3)
+    seen = []
+    offer(window, 0, 0, seen)
+    offer(window, DT, 1, seen)
+    offer(window, 2 * DT, 2, seen)
+    assert kept_frames(window) == {0: 0, 1: 1, 2: 2}  # not more than 3 settled ones yet
+    offer(window, 3 * DT + DT // 2, 35, seen)
+    assert kept_frames(window) == {1: 1, 2: 2, 3: 35, 4: 35}  # slot 4 is not settled
+    for k in (5, 6, 8):
+        offer(window, k * DT, k, seen)
+    assert kept_frames(window) == {5: 5, 6: 6, 8: 8}
+    assert seen == [(0, []), (1, [0]), (2, [1, 0]), (35, [2, 1, 0]), (5, [35, 35, 2]), (6, [5, 35, 35]),
+                    (8, [6, 5, 35])]
+    for k in range(9, 25):
+        offer(window, k * DT, k, seen)
+    assert kept_frames(window) == {}  # complete: no frame can come in any more
+    seen.clear()
+    offer(window, 30 * DT + 10**9, 100, seen)  # a gap: a new episode
+    offer(window, 31 * DT + 10**9, 101, seen)
+    assert seen == [(100, []), (101, [100])]
+
+
+def test_history_0_passes_no_earlier_frames_and_keeps_only_unsettled_ones():
+    window = FrameWindow(0.025, 25, history=0)
+    seen = []
+    for k in range(5):
+        offer(window, k * DT, k, seen)
+    assert seen == [(k, []) for k in range(5)]
+    assert kept_frames(window) == {5: 4}  # frame 4 may still be the nearest to slot 5
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(1_000_000, 60_000_000), min_size=1, max_size=40),
+       st.sampled_from([0.4, 0.5, 1.0]), st.integers(0, 4))
+def test_earlier_frames_are_those_of_the_final_slots(steps, tolerance, history):
+    """Jittery stamps: each frame that ends up in the window was encoded with the frames of the
+    `history` latest filled slots before its first slot, as the window finally holds them; the
+    window never keeps more settled frames than `history`."""
+    window = FrameWindow(0.025, 25, slot_tolerance=tolerance, history=history, policy="anytime", min_frames=1)
+    stamps = [int(s) for s in np.cumsum(steps)]
+    seen = []
+    outputs = []
+    for stamp in stamps:
+        seen_before = len(seen)
+        outputs += window.add(stamp, labelled(stamp), lambda current, earlier: seen.append(
+            (int(current[0, 0]), [int(e[0, 0]) for e in earlier])) or np.array([float(current[0, 0])]))
+        settled_frames = [k for k in kept_frames(window) if k < window._settled]
+        assert len(settled_frames) <= (0 if window._settled == 25 else history)
+        assert len(seen) - seen_before <= 1
+    outputs += window.flush()
+    slots = chosen(outputs[-1])
+    for label, earlier in seen:
+        if label in slots:  # not displaced from all its slots by nearer later frames
+            first = slots.index(label)
+            assert earlier == [s for s in reversed(slots[:first]) if s is not None][:history]
 
 
 def test_the_window_keeps_only_frames_a_later_frame_may_need():
@@ -244,6 +314,8 @@ def test_bad_configuration_is_refused():
         FrameWindow(0.025, 25, policy="sometimes")
     with pytest.raises(ValueError, match="gap_threshold"):
         FrameWindow(0.025, 25, gap_threshold=0.01)
+    with pytest.raises(ValueError, match="history is a number of earlier frames >= 0"):
+        FrameWindow(0.025, 25, history=-1)
     for interval in (float("inf"), float("nan"), 0.0):
         with pytest.raises(ValueError, match="finite frame_interval > 0"):
             FrameWindow(interval, 25)
@@ -253,7 +325,8 @@ def test_clip_output_restarts_on_a_size_change_as_a_stream_does():
     """Frame 5 of another size: the clip's output is that of the frames after it (the last restart)."""
     stamps = [k * DT for k in range(25)]
     masks = [frame((64, 64) if k == 5 else SIZE) for k in range(25)]
-    out = clip_output(stamps, masks, lambda mask, _previous: np.array([float(mask.shape[0])]), 0.025, 25)
+    out = clip_output(stamps, masks, lambda mask, _earlier: np.array([float(mask.shape[0])]), 0.025, 25,
+                      history=1)
     assert out.episode_start_ns == out.oldest_stamp_ns == 6 * DT and len(out.valid) == 19 and out.valid.all()
     assert not out.complete and (out.features == 128.0).all()
 

@@ -16,16 +16,21 @@ from ad_sim.materials import FAMILIES, PARAMETER_NAMES, denormalise
 from training import engine
 from training.data import resize_masks
 from training.export import export_student, verify_export
-from training.models.student import build_student, student_preset
+from training.models.student import build_student, frame_encoder_input, student_preset
 
 
-KINDS = ["streaming", "streaming_previous_frame", "uniformer"]
+# A streaming student whose frame encoder also sees N earlier frames is named streaming_previous_N.
+KINDS = ["streaming", "streaming_previous_1", "streaming_previous_3", "uniformer"]
+
+
+def _previous_frames(kind: str) -> int:
+    return int(kind.partition("_previous_")[2] or 0)
 
 
 def _checkpoint(tmp_path, kind: str):
     torch.manual_seed(0)
-    config = student_preset(kind.removesuffix("_previous_frame"), "tiny", z_dim=32)
-    config = dataclasses.replace(config, previous_frame=kind.endswith("_previous_frame"))
+    config = student_preset(kind.partition("_previous_")[0], "tiny", z_dim=32)
+    config = dataclasses.replace(config, previous_frames=_previous_frames(kind))
     model = build_student(config)
     # Non-trivial BatchNorm statistics, so that eval-mode export is really checked.
     model.train()
@@ -57,21 +62,23 @@ def test_onnxruntime_matches_torch_and_metadata_is_complete(tmp_path, kind):
         assert json.loads(meta["ad.fixed_parameters"])["sand"] == {"youngs_modulus": 1e5, "poissons_ratio": 0.3}
         if streaming:
             assert meta["ad.frame_encoder"] == "student.frame.onnx"
-        previous = kind.endswith("_previous_frame")
-        assert ("ad.frame_inputs" in meta) == previous
+        previous = _previous_frames(kind)
+        assert ("ad.frame_inputs" in meta) == bool(previous)
         if previous:
-            assert json.loads(meta["ad.frame_inputs"]) == ["mask", "previous_mask"]
+            assert json.loads(meta["ad.frame_inputs"]) == ["mask", "previous_mask", "previous_mask_2",
+                                                           "previous_mask_3"][:previous + 1]
 
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_estimator_wrapper_runs_the_export_like_torch(tmp_path, kind):
     """What the robot runs (resize, per-frame features on the window's slots, padded window) equals
-    the torch model, also with a dropped frame (the previous-frame encoder then sees the frame
+    the torch model, also with a dropped frame (an encoder of earlier frames then sees the frames
     before the gap, as in training)."""
     ckpt, model = _checkpoint(tmp_path, kind)
     out = tmp_path / "student.onnx"
     export_student(ckpt, out)
     estimator = EstimatorModel.load(out)
+    streaming = kind.startswith("streaming")
     rng = np.random.default_rng(1)
     masks = np.zeros((25, 128, 128), np.uint8)
     for t in range(25):  # a blob that falls and flattens
@@ -81,7 +88,7 @@ def test_estimator_wrapper_runs_the_export_like_torch(tmp_path, kind):
     for k, dropped in ((25, None), (15, None), (25, 7)):
         kept = [t for t in range(k) if t != dropped]
         out = clip_output([stamps[t] for t in kept], [masks[t] for t in kept], estimator.encode, 0.025, 25,
-                         slot_tolerance=0.4)  # a dropped frame leaves its slot empty
+                         slot_tolerance=0.4, history=estimator.info.previous_frames)  # a dropped frame leaves its slot empty
         est = estimator.predict(out.features, out.valid)
         x = torch.zeros(1, 25, 32, 32)
         valid = torch.zeros(1, 25)
@@ -89,6 +96,9 @@ def test_estimator_wrapper_runs_the_export_like_torch(tmp_path, kind):
         valid[0, kept] = 1
         with torch.no_grad():
             ref = model(x, valid)
+            if streaming:  # each frame's embedding, from the earlier frames training gives it
+                frames = frame_encoder_input(model.config, x, valid)[0, kept]
+                np.testing.assert_allclose(out.features[kept], model.frame_encoder(frames).numpy(), atol=1e-4)
         np.testing.assert_allclose(est.probabilities, torch.softmax(ref["logits"][0], -1).numpy(), atol=1e-4)
         expected = [denormalise(n, float(ref["params"][0, i].clamp(0, 1))) for i, n in enumerate(PARAMETER_NAMES)]
         np.testing.assert_allclose(est.raw_parameters, expected, rtol=1e-3)

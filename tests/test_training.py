@@ -14,7 +14,8 @@ import pytest
 import torch
 
 from training import data, engine
-from training.models.student import build_student, previous_observed, student_preset
+from training.models.student import (StudentConfig, build_student, earlier_observed_slots, frame_encoder_input,
+                                     student_preset)
 from training.models.teacher import TEACHER_PRESETS, Teacher, farthest_point_sampling, strain_features
 from training.synthetic import write_synthetic_bag
 from training.train_student import ABLATIONS, VideoSet, load_student, student_loss, videos_on_device
@@ -37,7 +38,7 @@ def _args(bags, out, cache, **kw):
     base = dict(bags=str(bags), cache=str(cache), out=str(out), size="tiny", epochs=2, batch_size=4, lr=3e-3,
                 min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True,
                 videos_on_device="auto", align_weight=0.1, regl1_weight=0.2, stop_after=0, amp=False,
-                encoder_channels=None, previous_frame=False, teacher=None)
+                encoder_channels=None, previous_frames=0, teacher=None)
     base.update(kw)
     return Namespace(**base)
 
@@ -136,30 +137,46 @@ def test_encoder_channels_override_the_preset(bags, tmp_path):
                           full_clips=False, encoder_channels=(4, 12)))
 
 
-def test_previous_observed_skips_unobserved_slots():
-    masks = torch.arange(5.0).view(1, 5, 1, 1).expand(2, 5, 2, 3).clone()  # slot k holds the value k
-    valid = torch.tensor([[1.0, 1, 1, 1, 1], [1, 0, 1, 0, 1]])
-    previous = previous_observed(masks, valid)[:, :, 0, 0]
-    # The first slot has no earlier frame and sees itself; a gap is skipped to the last observed slot.
-    assert previous.tolist() == [[0, 0, 1, 2, 3], [0, 0, 0, 2, 2]]
+def test_earlier_observed_slots_skip_unobserved_slots_and_repeat_the_oldest():
+    valid = torch.tensor([[1.0, 1, 1, 1, 1], [1, 0, 1, 0, 1], [0, 1, 1, 1, 0]])
+    sources = earlier_observed_slots(valid, 3)
+    # Newest first; a gap is skipped to the last observed slot; with fewer earlier frames than asked
+    # the oldest one stands in, and the first slot, with none, sees itself.
+    assert sources[0].tolist() == [[0, 0, 0], [0, 0, 0], [1, 0, 0], [2, 1, 0], [3, 2, 1]]
+    assert sources[1].tolist() == [[0, 0, 0], [0, 0, 0], [0, 0, 0], [2, 0, 0], [2, 0, 0]]
+    assert sources[2][:4].tolist() == [[0, 0, 0], [1, 1, 1], [1, 1, 1], [2, 1, 1]]
+    masks = torch.arange(5.0).view(1, 5, 1, 1).expand(3, 5, 2, 3).clone()  # slot k holds the value k
+    config = student_preset("streaming", "tiny", z_dim=32)
+    frames = frame_encoder_input(dataclasses.replace(config, previous_frames=3), masks, valid)
+    assert frames.shape == (3, 5, 4, 2, 3)
+    assert frames[0, :, :, 0, 0].tolist() == [[0, 0, 0, 0], [1, 0, 0, 0], [2, 1, 0, 0], [3, 2, 1, 0], [4, 3, 2, 1]]
+    assert frame_encoder_input(config, masks, valid).shape == (3, 5, 1, 2, 3)
 
 
-def test_previous_frame_student_trains_with_two_input_channels(bags, tmp_path):
+def test_old_checkpoint_config_with_a_previous_frame_flag_loads():
+    config = student_preset("streaming", "tiny", z_dim=32).to_dict()
+    del config["previous_frames"]
+    for flag, expected in ((True, 1), (False, 0)):
+        assert StudentConfig.from_dict({**config, "previous_frame": flag}).previous_frames == expected
+
+
+@pytest.mark.parametrize("previous_frames", [1, 2])
+def test_student_with_earlier_frames_trains_with_one_input_channel_each(bags, tmp_path, previous_frames):
     best = run_student(_args(bags, tmp_path / "s", tmp_path / "cache", epochs=1, kind="streaming", ablation="none",
-                             alpha=0.5, full_clips=False, previous_frame=True))
+                             alpha=0.5, full_clips=False, previous_frames=previous_frames))
     model, meta = load_student(best)
-    assert meta["config"]["previous_frame"] is True
-    assert model.frame_encoder.features[0][0].weight.shape[1] == 2
+    assert meta["config"]["previous_frames"] == previous_frames
+    assert model.frame_encoder.features[0][0].weight.shape[1] == 1 + previous_frames
     # The previous frame changes the embedding: the same mask after a different one encodes differently.
     mask = torch.zeros(1, 1, 32, 32)
     mask[..., 10:20, 10:20] = 1.0
     with torch.no_grad():
-        still = model.frame_encoder(torch.cat([mask, mask], 1))
-        moved = model.frame_encoder(torch.cat([mask, mask.roll(3, -2)], 1))
+        still = model.frame_encoder(torch.cat([mask] * (1 + previous_frames), 1))
+        moved = model.frame_encoder(torch.cat([mask] + [mask.roll(3, -2)] * previous_frames, 1))
     assert not torch.allclose(still, moved)
     with pytest.raises(SystemExit, match="streaming student only"):
         run_student(_args(bags, tmp_path / "u", tmp_path / "cache", kind="uniformer", ablation="none", alpha=0.5,
-                          full_clips=False, previous_frame=True))
+                          full_clips=False, previous_frames=previous_frames))
 
 
 def test_batches_built_on_device_match_host_batches(bags, tmp_path):

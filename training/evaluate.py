@@ -32,7 +32,7 @@ def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORE
     for j in tqdm(videos, desc="evaluate", unit="clip", disable=not progress):
         video = list(ds.video(int(j)))  # frames on the model's interval, in order
         features = clip_output([0] * len(video), video, model.encode, model.info.frame_interval,
-                               model.info.frame_count).features
+                               model.info.frame_count, history=model.info.previous_frames).features
         for k in frames:
             est = model.predict(features[:k], np.ones(k, bool))
             probs[k].append(est.probabilities)

@@ -1,7 +1,7 @@
 """Export a student checkpoint to ONNX with the metadata of docs/architecture.md.
 
-streaming: <name>.frame.onnx (frame (B,C,H,W) -> embedding (B,D); C is 2 when channel 1 holds the
-previous observed mask, see ad.frame_inputs) and <name>.onnx (embeddings (B,T,D), valid (B,T) ->
+streaming: <name>.frame.onnx (frame (B,C,H,W) -> embedding (B,D); channels after the first hold
+the earlier observed masks, newest first, see ad.frame_inputs) and <name>.onnx (embeddings (B,T,D), valid (B,T) ->
 logits, params, params_logvar). clip: <name>.onnx (masks (B,T,H,W),
 valid (B,T) -> the same outputs; fewer than 25 frames are zero-padded inside the graph).
 """
@@ -27,6 +27,7 @@ from ad_sim.materials import (
     PARAMETER_NAMES,
     PARAMETER_RANGES,
 )
+from ad_estimator.model import frame_inputs
 from training.evaluate import metrics_path
 from training.models.student import frame_channels, frame_encoder_input
 from training.train_student import load_student
@@ -116,8 +117,8 @@ def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None
                     {"embeddings": {0: "batch", 1: "time"}, "valid": {0: "batch", 1: "time"},
                      **{o: {0: "batch"} for o in OUTPUTS}})
             extra.update({"ad.frame_encoder": frame_path.name, "ad.embedding_dim": str(d)})
-            if config.previous_frame:  # channel 1 holds the previous observed mask (ad_estimator.model)
-                extra["ad.frame_inputs"] = json.dumps(["mask", "previous_mask"])
+            if config.previous_frames:  # what the channels hold, for the estimator's window
+                extra["ad.frame_inputs"] = json.dumps(frame_inputs(config.previous_frames))
             meta_all = metadata(model_id, "streaming", (h, w), extra)
             _attach(frame_path, meta_all)
             written.append(frame_path)

@@ -136,12 +136,18 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--encoder-channels", type=_channels, metavar="C1,C2,...",
                    help="streaming: channels of the frame encoder's stride-2 stages (default: the size preset's; "
                         "wider costs CPU time per frame, see benchmarks/latency.py)")
-    p.add_argument("--previous-frame", action="store_true",
-                   help="streaming: the frame encoder also sees the previous observed frame (early fusion; "
-                        "the estimator passes it on)")
+    p.add_argument("--previous-frames", type=_count, default=0, metavar="N",
+                   help="streaming: the frame encoder also sees the N earlier observed frames (early fusion of "
+                        "time; the estimator passes them on). The bundled model: 1")
     p.add_argument("--full-clips", action="store_true",
                    help="train on full 25-frame clips only (default: streaming students see random prefixes)")
     return p
+
+
+def _count(text: str) -> int:
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return int(text)
 
 
 def _channels(text: str) -> tuple[int, ...]:
@@ -159,8 +165,8 @@ def run(args) -> Path:
         torch.set_num_threads(args.threads)
     seed_everything(args.seed)
     rt = init_runtime(args.device)
-    if (args.encoder_channels or args.previous_frame) and args.kind != "streaming":
-        raise SystemExit("--encoder-channels and --previous-frame apply to the streaming student only")
+    if (args.encoder_channels or args.previous_frames) and args.kind != "streaming":
+        raise SystemExit("--encoder-channels and --previous-frames apply to the streaming student only")
     if args.ablation != "none" and not args.teacher:
         raise SystemExit("--teacher is required for --ablation align_only/full (train one with `python -m training "
                          "teacher`), or use --ablation none")
@@ -172,8 +178,8 @@ def run(args) -> Path:
     config = student_preset(args.kind, args.size, z_dim)
     if args.encoder_channels:
         config = dataclasses.replace(config, channels=args.encoder_channels)
-    if args.previous_frame:
-        config = dataclasses.replace(config, previous_frame=True)
+    if args.previous_frames:
+        config = dataclasses.replace(config, previous_frames=args.previous_frames)
     targets = teacher_targets(teacher, ds, rt.device) if teacher and args.ablation != "none" else None
     frames = main_first(rt, lambda: data.resized_videos(ds, tuple(config.input_size),
                                                           rt.main and not args.no_progress))

@@ -34,10 +34,10 @@ class StudentConfig:
     # a jelly's stiffness shows as a few pixels of squash and rebound, which pooled CNN features
     # blur. False for models trained before they existed.
     moments: bool = False
-    # The frame encoder also sees the previous observed frame (a second input channel), so the CNN
-    # can compare consecutive masks pixel by pixel before pooling blurs a few pixels of squash.
-    # False for models trained before it existed.
-    previous_frame: bool = False
+    # The frame encoder also sees this many earlier observed frames (extra input channels, newest
+    # first), so the CNN can compare consecutive masks pixel by pixel before pooling blurs a few
+    # pixels of squash, and with two or more see acceleration. 0 for models trained before it existed.
+    previous_frames: int = 0
     temporal_width: int = 128
     temporal_depth: int = 2
     temporal_heads: int = 4
@@ -53,6 +53,9 @@ class StudentConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "StudentConfig":
+        d = dict(d)
+        if "previous_frame" in d:  # checkpoints before previous_frames: a flag for one previous frame
+            d["previous_frames"] = int(d.pop("previous_frame"))
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
@@ -137,7 +140,7 @@ class FrameEncoder(nn.Module):
                                      nn.LayerNorm(config.embed_dim))
 
     def forward(self, frame: torch.Tensor) -> torch.Tensor:
-        """frame (B, C, H, W): the mask, then (with previous_frame) the previous observed mask."""
+        """frame (B, C, H, W): the mask, then its `previous_frames` earlier observed masks, newest first."""
         x = self.pool(self.features(frame)).flatten(1)
         if self.moments:
             # Moments are in [-1, 1]; x4 puts them on the scale of the CNN features.
@@ -146,30 +149,37 @@ class FrameEncoder(nn.Module):
 
 
 def frame_channels(config: StudentConfig) -> int:
-    """Input channels of the streaming frame encoder: the mask, and the previous one if configured."""
-    return 2 if config.previous_frame else 1
+    """Input channels of the streaming frame encoder: the mask and its earlier observed ones."""
+    return 1 + config.previous_frames
 
 
 def frame_encoder_input(config: StudentConfig, masks: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """(B, T, H, W) masks, (B, T) valid -> (B, T, C, H, W): what the frame encoder reads for each
-    slot, the mask and (with previous_frame) the previous observed mask."""
-    frames = masks.unsqueeze(2)
-    if config.previous_frame:
-        frames = torch.cat([frames, previous_observed(masks, valid).unsqueeze(2)], dim=2)
-    return frames
+    slot, the mask and its `previous_frames` earlier observed masks, newest first."""
+    if not config.previous_frames:
+        return masks.unsqueeze(2)
+    sources = earlier_observed_slots(valid, config.previous_frames)  # (B, T, n)
+    frames = [masks] + [masks.gather(1, sources[:, :, k, None, None].expand_as(masks))
+                        for k in range(config.previous_frames)]
+    return torch.stack(frames, dim=2)
 
 
-def previous_observed(masks: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """(B, T, H, W) masks -> for each slot the mask of the nearest earlier valid slot; the slot's
-    own mask where there is none (the first frame of an episode has no motion yet)."""
+def earlier_observed_slots(valid: torch.Tensor, n: int) -> torch.Tensor:
+    """(B, T) valid -> (B, T, n): for each slot, its n latest earlier valid slots, newest first.
+    Where there are fewer, the oldest one available stands in (the episode's first frame; for
+    that frame, itself: the first frame has no motion yet). The estimator's window follows the
+    same rule (ad_estimator.model.EstimatorModel.encode)."""
     t = valid.shape[1]
-    slots = torch.arange(t, device=masks.device)
+    slots = torch.arange(t, device=valid.device)
     earlier = slots[None, :] < slots[:, None]  # [k, j]: slot j comes before slot k
     # The latest earlier valid slot (ReduceMax over a triangle: cummax does not export to ONNX).
     candidates = torch.where(earlier[None] & (valid[:, None, :] > 0), slots[None, None, :], -1)
     latest = candidates.amax(-1)
-    source = torch.where(latest >= 0, latest, slots[None, :])
-    return masks.gather(1, source[:, :, None, None].expand_as(masks))
+    previous = torch.where(latest >= 0, latest, slots[None, :])  # (B, T); a slot without one: itself
+    sources = [previous]
+    for _ in range(n - 1):  # the k-th previous is the previous of the (k-1)-th
+        sources.append(previous.gather(1, sources[-1]))
+    return torch.stack(sources, dim=-1)
 
 
 class TemporalHead(nn.Module):

@@ -110,7 +110,7 @@ def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed
     if masks is None:
         masks = [image_to_mask(image, MAX_IMAGE_PIXELS, threshold) for _, image in frames]
     out = clip_output([s for s, _ in frames], masks[:observed], encode or model.encode, model.info.frame_interval,
-                      model.info.frame_count, slot_tolerance)
+                      model.info.frame_count, slot_tolerance=slot_tolerance, history=model.info.previous_frames)
     estimate = model.predict(out.features, out.valid)
     return EpisodePrediction(
         episode_id=instance.episode_id, bag=str(bag), frames=observed, true_material=instance.material,
@@ -184,12 +184,12 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
         warnings.warn(f"{where}: the image size changes from {before[1]}x{before[0]} to {after[1]}x{after[0]} at "
                       f"stamp {stamp_text(frames[changes[0]][0])}; as in the node, the frame window restarts there")
     # Every prefix length reuses the episode's conversions and frame encodings.
-    features: dict[tuple[int, int], np.ndarray] = {}
+    features: dict[tuple[int, tuple[int, ...]], np.ndarray] = {}
 
-    def encode(mask: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
-        key = (id(mask), id(previous))
+    def encode(mask: np.ndarray, earlier: list[np.ndarray]) -> np.ndarray:
+        key = (id(mask), tuple(id(e) for e in earlier))
         if key not in features:
-            features[key] = model.encode(mask, previous)
+            features[key] = model.encode(mask, earlier)
         return features[key]
 
     try:

@@ -8,7 +8,8 @@ opencv (never torch). Two kinds of model:
 - ``streaming``: ``<name>.frame.onnx`` maps one frame to an embedding, ``<name>.onnx`` (the
   temporal head) maps the embeddings of a window to the outputs. A frame's feature is its
   embedding, so a new frame costs one frame encoding plus one run of the small head. A frame
-  encoder may also take the previous observed frame (``ad.frame_inputs``), stacked as channels.
+  encoder may also take the episode's N earlier observed frames (``ad.frame_inputs``), stacked
+  as channels after the frame, newest first.
 
 Callers (node, evaluate, service, benchmark) all go ``encode`` per frame, keep the features on
 the model's frame slots (``ad_estimator.window``), then ``predict``.
@@ -20,6 +21,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -38,14 +40,18 @@ REQUIRED_METADATA = (
     "ad.kind",
 )
 KINDS = ("clip", "streaming")
-# What a streaming frame encoder's input channels hold, in order (``ad.frame_inputs``; absent: the mask only).
-FRAME_INPUTS = ("mask", "previous_mask")
 # The bundled default model, installed with the package (package data, found next to this module).
 BUNDLED_MODEL = Path(__file__).resolve().parent / "models" / "default.onnx"
 
 
 class ModelError(ValueError):
     """The model file is missing, unreadable or does not follow the metadata contract."""
+
+
+def frame_inputs(previous_frames: int) -> tuple[str, ...]:
+    """``ad.frame_inputs`` of a streaming frame encoder that also sees ``previous_frames`` earlier
+    observed frames: what its input channels hold, in order (absent from the metadata: the mask only)."""
+    return ("mask", *(f"previous_mask_{k}" if k > 1 else "previous_mask" for k in range(1, previous_frames + 1)))
 
 
 @dataclass(frozen=True)
@@ -83,11 +89,12 @@ class ModelInfo:
     frame_count: int
     input_size: tuple[int, int]  # (H, W)
     frame_encoder: Path | None  # streaming models only
-    frame_inputs: tuple[str, ...] = ("mask",)  # input channels of the frame encoder
+    frame_inputs: tuple[str, ...] = ("mask",)  # input channels of the frame encoder, see frame_inputs()
 
     @property
-    def uses_previous_frame(self) -> bool:
-        return "previous_mask" in self.frame_inputs
+    def previous_frames(self) -> int:
+        """How many earlier observed frames of the episode the frame encoder sees besides the frame."""
+        return len(self.frame_inputs) - 1
 
 
 @dataclass
@@ -149,19 +156,21 @@ def parse_metadata(meta: dict[str, str], path: Path) -> ModelInfo:
         raise ModelError(f"{path}: bad input_size/frame_count/frame_interval metadata ({meta['ad.input_size']}, "
                          f"{meta['ad.frame_count']}, {meta['ad.frame_interval']}); re-export the model")
     frame_encoder = None
-    frame_inputs = ("mask",)
+    inputs = frame_inputs(0)
     if kind == "streaming":
         if "ad.frame_encoder" not in meta:
             raise ModelError(f"{path}: streaming model without ad.frame_encoder metadata")
         frame_encoder = path.parent / meta["ad.frame_encoder"]
         if "ad.frame_inputs" in meta:
             listed = _json(meta, "ad.frame_inputs", path)
-            frame_inputs = tuple(listed) if isinstance(listed, list) else (listed,)
-            if frame_inputs not in (FRAME_INPUTS[:1], FRAME_INPUTS):
-                raise ModelError(f"{path}: ad.frame_inputs {list(frame_inputs)} is not one this estimator knows "
-                                 f"({list(FRAME_INPUTS[:1])} or {list(FRAME_INPUTS)}); update ad_estimator or re-export")
+            inputs = tuple(listed) if isinstance(listed, list) else (listed,)
+            if not inputs or inputs != frame_inputs(len(inputs) - 1):
+                raise ModelError(f"{path}: ad.frame_inputs {list(inputs)} is not one this estimator knows "
+                                 f"({list(frame_inputs(0))}, {list(frame_inputs(1))}, {list(frame_inputs(2))}, ...: "
+                                 "the mask, then its earlier observed frames, newest first); "
+                                 "update ad_estimator or re-export")
     return ModelInfo(path, meta["ad.model_id"], kind, class_names, parameter_names, ranges, family_parameters,
-                     fixed, frame_interval, frame_count, input_size, frame_encoder, frame_inputs)
+                     fixed, frame_interval, frame_count, input_size, frame_encoder, inputs)
 
 
 # Execution providers by short name. CPU is the robot's default: for a model this small, copying
@@ -233,7 +242,7 @@ class EstimatorModel:
         self._frame_session = frame_session
         self._has_logvar = "params_logvar" in {o.name for o in session.get_outputs()}
         self._outputs = ["logits", "params"] + (["params_logvar"] if self._has_logvar else [])
-        self._last_prepared: tuple[np.ndarray, np.ndarray] | None = None  # (mask, prepare(mask)), see _prepared
+        self._recently_prepared: tuple[tuple[np.ndarray, np.ndarray], ...] = ()  # (mask, prepare(mask)), see _prepared
         h, w = info.input_size
         # A trial run at the metadata's sizes: graphs that do not fit their metadata fail here, at load, not on
         # the first frame; it is also the warm-up (the first onnxruntime call allocates).
@@ -301,31 +310,33 @@ class EstimatorModel:
             mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_AREA)
         return mask.astype(np.float32) * np.float32(1.0 / 255.0)
 
-    def encode(self, mask: np.ndarray, previous: np.ndarray | None = None) -> np.ndarray:
+    def encode(self, mask: np.ndarray, earlier: Sequence[np.ndarray] = ()) -> np.ndarray:
         """Feature of one frame: the prepared mask (clip models) or its embedding (streaming models).
 
-        ``previous``: the episode's previous observed mask (None for its first frame, which then
-        stands in for it, as in training); only models with ``uses_previous_frame`` read it."""
+        ``earlier``: the episode's earlier observed masks, newest first (empty for its first frame);
+        only the first ``info.previous_frames`` are read. Where fewer are given, the oldest one given
+        (or the mask itself) stands in for the missing ones, as in training."""
         if self._frame_session is None:
             return self.prepare(mask)
-        if not self.info.uses_previous_frame:
+        count = self.info.previous_frames
+        if count == 0:
             frame = self.prepare(mask)[None, None]
         else:
-            # The previous frame first: in a stream it is the one prepared last time.
-            before = None if previous is None else self._prepared(previous)
-            current = self._prepared(mask)
-            frame = np.stack([current, current if before is None else before])[None]
+            masks = [mask, *earlier[:count]]
+            masks += [masks[-1]] * (count + 1 - len(masks))
+            frame = np.stack([self._prepared(m) for m in masks])[None]
         return self._frame_session.run(["embedding"], {"frame": frame})[0][0]
 
     def _prepared(self, mask: np.ndarray) -> np.ndarray:
-        """prepare(), remembering the last mask: in a stream, a frame's previous is the frame
-        prepared just before, so each frame is resized once (masks are not changed once offered,
-        which the window relies on too)."""
-        last = self._last_prepared  # one read: the node's worker and service threads may both encode
-        if last is not None and last[0] is mask:
-            return last[1]
+        """prepare(), remembering the last ``previous_frames + 1`` masks (one encoding's): in a stream,
+        a frame's earlier frames are the ones prepared just before, so each frame is resized once
+        (masks are not changed once offered, which the window relies on too)."""
+        recent = self._recently_prepared  # one read: the node's worker and service threads may both encode
+        for seen, frame in recent:
+            if seen is mask:
+                return frame
         frame = self.prepare(mask)
-        self._last_prepared = (mask, frame)
+        self._recently_prepared = (*recent, (mask, frame))[-(self.info.previous_frames + 1):]
         return frame
 
     def predict(self, features: np.ndarray, valid: np.ndarray) -> Estimate:

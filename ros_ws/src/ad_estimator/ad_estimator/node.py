@@ -119,7 +119,8 @@ class EstimatorNode(Node):
         self.slot_tolerance = p["slot_tolerance"]
         self.window = FrameWindow(self.info.frame_interval, self.info.frame_count, gap_threshold=p["gap_threshold"],
                                   slot_tolerance=self.slot_tolerance, policy=p["output_policy"],
-                                  every_n=p["every_n"], min_frames=min(p["min_frames"], self.info.frame_count))
+                                  every_n=p["every_n"], min_frames=min(p["min_frames"], self.info.frame_count),
+                                  history=self.info.previous_frames)
         self.max_pixels = p["max_image_pixels"]
         self.threshold = p["mask_threshold"]
         self.idle_flush = p["idle_flush"]
@@ -206,9 +207,9 @@ class EstimatorNode(Node):
         stamp = stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
         encode_time = [0.0]
 
-        def encode(frame, previous):
+        def encode(frame, earlier):
             start = time.perf_counter()
-            feature = self.model.encode(frame, previous)
+            feature = self.model.encode(frame, earlier)
             encode_time[0] = time.perf_counter() - start
             return feature
 
@@ -307,7 +308,7 @@ class EstimatorNode(Node):
                 raise ValueError(f"frame {i}: {exc}") from exc
         stamps = [stamp_to_ns(f.header.stamp.sec, f.header.stamp.nanosec) for f in frames]
         out = clip_output(stamps, masks, self.model.encode, self.info.frame_interval, self.info.frame_count,
-                          self.slot_tolerance)
+                          slot_tolerance=self.slot_tolerance, history=self.info.previous_frames)
         estimate = self.model.predict(out.features, out.valid)
         return estimate_message(estimate, out, frames[-1].header.frame_id, self.info.model_id,
                                 time.perf_counter() - start)

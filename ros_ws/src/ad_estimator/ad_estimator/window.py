@@ -15,12 +15,14 @@ estimate at 25 frames is due the moment the frame for the last slot arrives. ``f
 frames are coming: end of stream, idle input) settles the slots up to the one nearest to the last
 frame, so a clip of K frames on the interval gives exactly K slots.
 
-Frames. The caller offers each frame with an ``encode(frame, previous)`` function, called once if
-the frame lands in a slot. ``previous`` is the frame in the latest filled slot before it in the
-same episode (None for the episode's first), for models whose frame encoder also sees the previous
-observed frame; others ignore it. A frame that fills several slots (a slow camera, a dropped
-frame) is encoded once, with the frame before it: the change between two frames really observed.
-The window keeps only the frames a later frame can still need as its previous one.
+Frames. The caller offers each frame with an ``encode(frame, earlier)`` function, called once if
+the frame lands in a slot. ``earlier`` holds the frames of the latest ``history`` filled slots
+before it in the same episode, newest first: fewer at the episode's start, none for its first
+frame. It is for models whose frame encoder also sees earlier observed frames (``history`` is then
+the model's ``previous_frames``; default 1); others ignore it. A frame that fills several slots (a
+slow camera, a dropped frame) is encoded once, with the frames before its first slot; a later
+frame finds it once per slot it fills, as the model's head sees it. The window keeps only the
+frames a later frame can still need as one of its earlier ones.
 
 Episodes. The window restarts (its next frame becomes frame 0) on a stamp gap larger than
 ``gap_threshold`` seconds, on stamps going backwards, on a change of image size and on
@@ -47,8 +49,8 @@ DEFAULT_SLOT_TOLERANCE = 1.0  # frame intervals
 # Stamps closer than this to a slot time count as at it (float stamps such as 1.5 + 3 * 0.025).
 SETTLE_EPSILON_NS = 1_000
 
-# encode(frame, previous frame of the episode or None) -> the frame's feature
-Encode = Callable[[np.ndarray, "np.ndarray | None"], np.ndarray]
+# encode(frame, earlier frames of the episode, newest first) -> the frame's feature
+Encode = Callable[[np.ndarray, "list[np.ndarray]"], np.ndarray]
 
 RESTART_FIRST = "first"
 RESTART_GAP = "gap"
@@ -77,7 +79,7 @@ class _Slot:
     stamp_ns: int
     error_ns: int
     feature: np.ndarray
-    frame: np.ndarray | None  # None once no later frame can need it as its previous one
+    frame: np.ndarray | None  # None once no later frame can need it as an earlier one
 
 
 @dataclass
@@ -91,9 +93,12 @@ class FrameWindow:
     """Online episode window; see the module docstring for the rules."""
 
     def __init__(self, frame_interval: float, frame_count: int, gap_threshold: float = DEFAULT_GAP_THRESHOLD,
-                 slot_tolerance: float = DEFAULT_SLOT_TOLERANCE, policy: str = "episode", every_n: int = 1, min_frames: int = 10):
+                 slot_tolerance: float = DEFAULT_SLOT_TOLERANCE, policy: str = "episode", every_n: int = 1, min_frames: int = 10,
+                 history: int = 1):
         if policy not in POLICIES:
             raise ValueError(f"output policy must be one of {POLICIES}, got {policy!r}")
+        if history < 0:
+            raise ValueError(f"history is a number of earlier frames >= 0, got {history}")
         if not 0 < frame_interval < math.inf or frame_count < 1 or every_n < 1 or not 1 <= min_frames <= frame_count:
             raise ValueError("need a finite frame_interval > 0, frame_count >= 1, every_n >= 1, "
                              "1 <= min_frames <= frame_count")
@@ -108,6 +113,7 @@ class FrameWindow:
         self.policy = policy
         self.every_n = every_n
         self.min_frames = min_frames if policy == "anytime" else frame_count
+        self.history = history
         self.stats = WindowStats()
         self.reset()
 
@@ -133,7 +139,7 @@ class FrameWindow:
         return outputs
 
     def add(self, stamp_ns: int, frame: np.ndarray, encode: Encode) -> list[WindowOutput]:
-        """Offer one frame (stamp in ns); ``encode(frame, previous)`` is called only if it lands in a slot.
+        """Offer one frame (stamp in ns); ``encode(frame, earlier)`` is called only if it lands in a slot.
 
         Returns the estimates due now: usually none; the previous episode's last one when this frame
         restarts the window (see flush); at most one for the current episode.
@@ -175,21 +181,25 @@ class FrameWindow:
             slot = self._slots[k]
             if slot is None or error < slot.error_ns:
                 if feature is None:
-                    previous = next((s.frame for s in reversed(self._slots[:k]) if s is not None), None)
-                    feature = encode(frame, previous)
+                    feature = encode(frame, self._earlier_frames(k))
                 self._slots[k] = _Slot(stamp_ns, error, feature, frame)
         if feature is None:
             self.stats.ignored += 1
 
+    def _earlier_frames(self, k: int) -> list[np.ndarray]:
+        """The frames of the latest ``history`` filled slots before slot k, newest first."""
+        filled = [s for s in reversed(self._slots[:k]) if s is not None]
+        return [s.frame for s in filled[:self.history]]
+
     def _forget_frames(self) -> None:
         """Later frames land at or after the first unsettled slot, so of the settled slots only the
-        latest filled one can still be a previous frame; none can once the episode is complete."""
-        settled = self._slots[:self._settled]
+        latest ``history`` filled ones can still hold an earlier frame; none can once the episode is
+        complete."""
+        filled = [s for s in self._slots[:self._settled] if s is not None]
         complete = self._settled == self.frame_count
-        latest = None if complete else next((s for s in reversed(settled) if s is not None), None)
-        for slot in settled:
-            if slot is not None and slot is not latest:
-                slot.frame = None
+        kept = 0 if complete else self.history
+        for slot in filled[:max(0, len(filled) - kept)]:
+            slot.frame = None
 
     def flush(self) -> list[WindowOutput]:
         """No more frames are coming for now: settle up to the last frame's slot, emit what is then due.
@@ -258,17 +268,19 @@ def clip_stamps(stamps_ns: list[int], frame_interval: float) -> list[int]:
 
 
 def clip_output(stamps_ns: list[int], masks: list[np.ndarray], encode: Encode,
-                frame_interval: float, frame_count: int,
+                frame_interval: float, frame_count: int, *, history: int,
                 slot_tolerance: float = DEFAULT_SLOT_TOLERANCE) -> WindowOutput | None:
     """The slots of a whole clip (oldest first), as one episode: what the stream would give at its
     last frame, settled as at the end of a stream. Used by the EstimateMaterial service and evaluate.
+    ``history``: earlier frames an encoding reads (the model's ``info.previous_frames``), required
+    because a wrong one gives a plausible but wrong estimate.
 
     As in a stream, a change of image size restarts the window: the output is then that of the
     frames from the last change on (its episode_start_ns says where)."""
     stamps_ns = clip_stamps(list(stamps_ns), frame_interval)
     span = (stamps_ns[-1] - stamps_ns[0]) / 1e9 + 1.0  # one clip is one episode: no gap restarts
     window = FrameWindow(frame_interval, frame_count, gap_threshold=span, slot_tolerance=slot_tolerance,
-                         policy="anytime", every_n=frame_count, min_frames=1)
+                         policy="anytime", every_n=frame_count, min_frames=1, history=history)
     outputs = []
     for stamp, mask in zip(stamps_ns, masks):
         outputs += window.add(stamp, mask, encode)
