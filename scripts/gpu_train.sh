@@ -12,8 +12,8 @@
 #   TEACHER_EPOCHS [300] STUDENT_EPOCHS [20] BATCH [32] (per process) LR [1e-4]
 #   REGL1_WEIGHT [training's default, SPEC 9's 0.2]  the students' RegL1 weight (the bundled
 #                               model: 1.0). Not part of the resume check: use a fresh OUT to change it
-#   PREVIOUS_FRAME [0]          1: streaming students' frame encoders also see the previous
-#                               observed frame (--previous-frame; the bundled model). Fresh OUT to change it
+#   PREVIOUS_FRAMES [0]         N: streaming students' frame encoders also see the N earlier
+#                               observed frames (--previous-frames; the bundled model: 1). Fresh OUT to change it
 #   ABLATION_EPOCHS [STUDENT_EPOCHS]  epochs of the none and align_only ablations
 #   TEACHER [unset]             a trained teacher checkpoint to use instead of training one
 #   ABLATIONS ["none align_only full"]  KINDS ["streaming uniformer"]
@@ -104,7 +104,7 @@ for student in "${STUDENTS[@]}"; do
     cmd=("${RUN[@]}" student --bags "$BAGS/train" --out "$OUT/$name" --epochs "$epochs"
          --teacher "$OUT/teacher/best.pt" --kind "$kind" --ablation "$ablation"
          ${REGL1_WEIGHT:+--regl1-weight "$REGL1_WEIGHT"} "${COMMON[@]}")
-    [ "${PREVIOUS_FRAME:-0}" = 1 ] && [ "$kind" = streaming ] && cmd+=(--previous-frame)
+    [ "${PREVIOUS_FRAMES:-0}" != 0 ] && [ "$kind" = streaming ] && cmd+=(--previous-frames "$PREVIOUS_FRAMES")
     if [ "$PARALLEL" = 1 ]; then
         "${cmd[@]}" --no-progress >"$OUT/$name.log" 2>&1 &
         pids+=($!)

@@ -12,6 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results" / "paper"
 
 SHIPPED = "**shipped**: streaming student, previous frame as a second input channel, full, 20 epochs"
+CANDIDATE = "candidate, not shipped: 3 earlier frames as input channels, RegL1 weight 2.0, full, 20 epochs"
 SHIPPED_NONE = "ablation of the shipped: without alignment (task loss only), 20 epochs"
 SHIPPED_ALIGN_ONLY = "ablation of the shipped: alignment only (teacher's frozen predictor), 20 epochs"
 PREVIOUS = "previous shipped: the same with one input channel (the current mask only)"
@@ -24,6 +25,7 @@ RECIPE = "previous recipe (SPEC weights): streaming, full, 20 epochs"
 ROWS = {
     "### Unseen objects": {
         SHIPPED: "streaming_previous_frame20_unseen/metrics.json",
+        CANDIDATE: "experiments/earlier_frames/h3reg2_unseen.json",
         SHIPPED_NONE: "ablation_previous_frame_none_20ep_unseen.json",
         SHIPPED_ALIGN_ONLY: "ablation_previous_frame_align_only_20ep_unseen.json",
         PREVIOUS: "streaming_full20_unseen/metrics.json",
@@ -36,6 +38,7 @@ ROWS = {
     },
     "### Seen objects": {
         SHIPPED: "streaming_previous_frame20_seen/metrics.json",
+        CANDIDATE: "experiments/earlier_frames/h3reg2_seen.json",
         SHIPPED_NONE: "ablation_previous_frame_none_20ep_seen.json",
         SHIPPED_ALIGN_ONLY: "ablation_previous_frame_align_only_20ep_seen.json",
         PREVIOUS: "streaming_full20_seen/metrics.json",
@@ -155,7 +158,18 @@ SECTION_6 = {
 }
 
 
-@pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6)])
+# docs/results/paper/experiments/README.md, section 7: row label -> metrics file
+EARLIER_FRAMES = {"h1lr3": "1 earlier frame, lr 3e-4", "h2": "2 earlier frames", "h3": "3 earlier frames",
+                  "h3lr3": "3, lr 3e-4", "h5": "5 earlier frames", "h3wide": "3, channels 24-192",
+                  "h3reg2": "3, RegL1 weight 2.0", "h3lr3wide": "3, lr 3e-4, channels 24-192"}
+SECTION_7 = {f"{split}, `pf` (1 earlier frame, **shipped**)": f"streaming_previous_frame20_{split}/metrics.json"
+             for split in ("seen", "unseen")} | {
+    f"{split}, `{run}` ({what})": f"experiments/earlier_frames/{run}_{split}.json"
+    for split in ("seen", "unseen") for run, what in EARLIER_FRAMES.items()}
+
+
+@pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
+                                                   ("## 7. ", SECTION_7)])
 def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
     for label, file in rows_to_files.items():
