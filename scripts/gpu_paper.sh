@@ -3,7 +3,7 @@
 #   scripts/gpu_paper.sh WORK [RESULTS]        run (or continue) the job
 #   scripts/gpu_paper.sh --pack WORK RESULTS   only pack what is there (after a `timeout`)
 # 1. generates the `paper` benchmark (train 9000 x 4 views, seen 900, unseen 900) into WORK/bags with
-#    CUDA Warp, GEN_PROCS generator processes per split sharing the GPU (finished shards are skipped);
+#    CUDA Warp, GEN_PROCS generator processes per split spread over the GPUs (finished shards are skipped);
 # 2. runs scripts/gpu_train.sh (teacher, the three streaming-student ablations, the UniFormer-style
 #    reference, export, seen/unseen evaluation with temporal OOD) into WORK/run;
 # 3. with BASELINE>0: the per-scene CMA-ES baseline and the re-simulation PSNR of the `full` student on
@@ -41,10 +41,13 @@ trap pack EXIT
 echo "==> generate $SIZE_BENCH ($GEN_PROCS processes per split) $(date +%T)"
 # One short run first compiles Warp's kernels into the cache the shard processes then share.
 python -m ad_sim.generate --size tiny --split unseen --limit 1 --out "$WORK/warmup" --device "$DEVICE" --quiet
+GPUS=$( (nvidia-smi -L 2>/dev/null || true) | wc -l)
 for split in train seen unseen; do
     pids=()
     for ((i = 0; i < GEN_PROCS; i++)); do
-        python -m ad_sim.generate --size "$SIZE_BENCH" --split "$split" --shard "$i/$GEN_PROCS" \
+        gpu=()  # shard i on GPU i mod GPUS
+        [ "$GPUS" -gt 1 ] && gpu=(env CUDA_VISIBLE_DEVICES=$(( i % GPUS )))
+        "${gpu[@]}" python -m ad_sim.generate --size "$SIZE_BENCH" --split "$split" --shard "$i/$GEN_PROCS" \
             --out "$BAGS/$split" --device "$DEVICE" --quiet &
         pids+=($!)
     done
