@@ -20,11 +20,12 @@
 #   PARALLEL [0]                1: train the students side by side, one process each, spread over
 #                               the GPUs in turn (logs in OUT/<name>.log); 0: one after another (DDP if NPROC>1)
 #   SEED [0]                    seed of data split, initialisation and batches (a second seed: a fresh OUT)
+#   SELECT [score]              validation metric that picks best.pt: score (CE + RegL1) or regl1
 #   STOP_AFTER [0]              >0: every training step stops after that many epochs in this run
 #   CACHE [OUT/cache]           DEVICE [cuda] (cpu: quick end-to-end checks of this script)
 set -euo pipefail
 if [ $# -ne 2 ]; then
-    sed -n '2,24p' "$0"
+    sed -n '2,25p' "$0"
     exit 2
 fi
 BAGS=$1
@@ -57,7 +58,7 @@ else
     RUN=(python -m training)
 fi
 COMMON=(--cache "$CACHE" --size "$SIZE" --batch-size "$BATCH" --lr "$LR" --device "$DEVICE" --stop-after "$STOP_AFTER"
-        --seed "${SEED:-0}")
+        --seed "${SEED:-0}" --select "${SELECT:-score}")
 [ "$DEVICE" = cpu ] || COMMON+=(--amp)
 mkdir -p "$OUT"
 

@@ -3,6 +3,7 @@ kill, weights-only checkpoints, ablations, DDP over gloo with two processes."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -38,7 +39,7 @@ def _args(bags, out, cache, **kw):
     base = dict(bags=str(bags), cache=str(cache), out=str(out), size="tiny", epochs=2, batch_size=4, lr=3e-3,
                 min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True,
                 videos_on_device="auto", align_weight=0.1, regl1_weight=0.2, stop_after=0, amp=False,
-                encoder_channels=None, previous_frames=0, teacher=None)
+                encoder_channels=None, previous_frames=0, teacher=None, select="score")
     base.update(kw)
     return Namespace(**base)
 
@@ -135,6 +136,19 @@ def test_encoder_channels_override_the_preset(bags, tmp_path):
     with pytest.raises(SystemExit, match="streaming student only"):
         run_student(_args(bags, tmp_path / "u", tmp_path / "cache", kind="uniformer", ablation="none", alpha=0.5,
                           full_clips=False, encoder_channels=(4, 12)))
+
+
+@pytest.mark.parametrize("select", ["score", "regl1"])
+def test_best_checkpoint_is_the_epoch_with_the_lowest_selected_validation_metric(bags, tmp_path, select):
+    out = tmp_path / "s"
+    best = run_student(_args(bags, out, tmp_path / "cache", epochs=4, kind="streaming", ablation="none", alpha=0.5,
+                             full_clips=False, select=select))
+    history = json.loads((out / "history.json").read_text())
+    chosen = min(history, key=lambda record: record[f"val_{select}"])["epoch"]
+    assert torch.load(best, weights_only=True)["epoch"] == chosen
+    assert build_student_parser().parse_args(["--bags", "b", "--out", "o", "--select", select]).select == select
+    with pytest.raises(SystemExit):
+        build_student_parser().parse_args(["--bags", "b", "--out", "o", "--select", "acc"])
 
 
 def test_earlier_observed_slots_skip_unobserved_slots_and_repeat_the_oldest():

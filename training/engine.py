@@ -154,15 +154,16 @@ class FitConfig:
     progress: bool = True
     amp: bool = False  # bfloat16 autocast on CUDA
     stop_after: int = 0  # >0: return after this many epochs in this call (time-sliced jobs); rerun to go on
+    select: str = "score"  # the validation metric (lower is better) that picks BEST: score (CE + RegL1) or regl1
 
 
 def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: Path, cfg: FitConfig, rt: Runtime,
-        meta: dict, select: str = "score", desc: str = "train") -> dict:
+        meta: dict, desc: str = "train") -> dict:
     """Trains `model` (already on rt.device) and returns the history.
 
     loss_fn(model, batch, train: bool) -> (loss tensor, {name: float tensor}); the batch is a dict
     of tensors on rt.device. Every epoch: validate, log, save LAST (model, optimizer, epoch,
-    step, RNG, history, meta) and BEST by the validation `select` metric (lower is better).
+    step, RNG, history, meta) and BEST by the validation `cfg.select` metric (lower is better).
     A run finds LAST in out_dir and resumes from it.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -230,7 +231,7 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
             record.update({f"val_{k}": v for k, v in evaluate_loss(model, val_loader, loss_fn, rt).items()})
         history.append(record)
         epoch += 1
-        score = record.get(f"val_{select}", record.get(f"train_{select}", record["train_loss"]))
+        score = record.get(f"val_{cfg.select}", record.get(f"train_{cfg.select}", record["train_loss"]))
         if rt.main:
             if score < best:
                 best = score

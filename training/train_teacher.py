@@ -107,6 +107,9 @@ def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: 
     return Predictions(ds.labels, ds.params_si, np.concatenate(probs), si, list(ds.episode_ids))
 
 
+SELECT_METRICS = ("score", "regl1")  # logged by models.common.task_loss for every run
+
+
 def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr: float = 1e-4) -> None:
     p.add_argument("--bags", required=True, help="folder of training .mcap bags (searched recursively)")
     p.add_argument("--cache", default=".cache/training", help="array cache folder (keyed by bag content)")
@@ -125,12 +128,15 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
     p.add_argument("--stop-after", type=int, default=0,
                    help="stop after this many epochs in this run (time-limited sessions); rerun to continue")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--select", choices=SELECT_METRICS, default="score",
+                   help="validation metric that picks best.pt: score = CE + RegL1 (favours classification), "
+                        "regl1 = RegL1 alone (favours the parameters planners use); keep it when resuming")
 
 
 def fit_config(args) -> FitConfig:
     return FitConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, weight_decay=args.weight_decay,
                      min_lr=args.min_lr, seed=args.seed, progress=not args.no_progress,
-                     stop_after=args.stop_after, amp=args.amp)
+                     stop_after=args.stop_after, amp=args.amp, select=args.select)
 
 
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
