@@ -41,7 +41,8 @@ trap pack EXIT
 echo "==> generate $SIZE_BENCH ($GEN_PROCS processes per split) $(date +%T)"
 # One short run first compiles Warp's kernels into the cache the shard processes then share.
 python -m ad_sim.generate --size tiny --split unseen --limit 1 --out "$WORK/warmup" --device "$DEVICE" --quiet
-GPUS=$( (nvidia-smi -L 2>/dev/null || true) | wc -l)
+# GPUs by index (nvidia-smi -L would also count MIG instances)
+GPUS=$( (nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null || true) | wc -l)
 for split in train seen unseen; do
     pids=()
     for ((i = 0; i < GEN_PROCS; i++)); do

@@ -33,7 +33,8 @@ OUT=$2
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 export PYTHONPATH="$ROOT/ros_ws/src/ad_sim:$ROOT/ros_ws/src/ad_estimator:$ROOT${PYTHONPATH:+:$PYTHONPATH}"
-GPUS=$( (nvidia-smi -L 2>/dev/null || true) | wc -l)
+# GPUs by index (nvidia-smi -L would also count MIG instances)
+GPUS=$( (nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null || true) | wc -l)
 NPROC=${NPROC:-$GPUS}
 NPROC=$(( NPROC > 0 ? NPROC : 1 ))
 SIZE=${SIZE:-paper}
@@ -99,7 +100,7 @@ for kind in $KINDS; do
         STUDENTS+=("$kind:$ablation")
     done
 done
-pids=()
+pids=() names=()
 trap '[ ${#pids[@]} -eq 0 ] || kill "${pids[@]}" 2>/dev/null' EXIT  # a time limit stops the students too
 STUDENT_RUN=("${RUN[@]}")
 [ "$PARALLEL" = 1 ] && STUDENT_RUN=(python -m training)
@@ -117,12 +118,15 @@ for student in "${STUDENTS[@]}"; do
         gpu=()
         [ "$GPUS" -gt 1 ] && gpu=(env CUDA_VISIBLE_DEVICES=$(( ${#pids[@]} % GPUS )))
         "${gpu[@]}" "${cmd[@]}" --no-progress >"$OUT/$name.log" 2>&1 &
-        pids+=($!)
+        pids+=($!) names+=("$name")
     else
         "${cmd[@]}"
     fi
 done
-for pid in "${pids[@]}"; do wait "$pid"; done
+# A student that fails leaves the others running (its log says why; the loop below skips it).
+for i in "${!pids[@]}"; do
+    wait "${pids[$i]}" || echo "==> student ${names[$i]} failed (exit $?); see $OUT/${names[$i]}.log"
+done
 pids=()
 for student in "${STUDENTS[@]}"; do
     name="${student/:/_}" model="$OUT/models/${student/:/_}.onnx"

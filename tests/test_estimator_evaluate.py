@@ -144,7 +144,8 @@ def test_a_frame_the_node_rejects_is_skipped_warned_and_counted(setup, tmp_path,
     assert skipped["episode_id"] == "test-disc-plasticine-0001" and skipped["stamp_ns"] == 1_625_000_000
     assert reason in skipped["reason"]
     model = EstimatorModel.load(model_path)
-    window = FrameWindow(model.info.frame_interval, model.info.frame_count)  # the node's defaults
+    window = FrameWindow(model.info.frame_interval, model.info.frame_count,  # the node's defaults
+                         history=model.info.previous_frames)
     masks = falling_masks(seed=101)
     (out,) = [o for k in range(25) if k != 5 for o in window.add(messages.frame_stamp(1, k), masks[k], model.encode)]
     episode = predictions["frames"]["25"][1]

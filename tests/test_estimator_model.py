@@ -223,6 +223,9 @@ def test_encode_of_the_bundled_model_sees_the_previous_frame():
                                _embedding(model, np.stack([model.prepare(mask), model.prepare(previous)])),
                                rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(model.encode(mask), model.encode(mask, [mask]), rtol=1e-6, atol=1e-6)
+    # One array where a sequence belongs (the old encode(mask, previous)) would be read as rows: refused.
+    with pytest.raises(TypeError, match="sequence of masks"):
+        model.encode(mask, previous)
 
 
 @pytest.mark.parametrize("previous_frames", [0, 1, 3])

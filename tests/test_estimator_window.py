@@ -36,7 +36,7 @@ def reference_slots(stamps, t0, count, tolerance):
 
 
 def test_exact_interval_gives_one_complete_estimate_at_frame_25():
-    window = FrameWindow(0.025, 25)
+    window = FrameWindow(0.025, 25, history=1)
     t0 = 1_500_000_000
     stamps = [t0 + k * DT for k in range(25)]
     assert feed(window, stamps[:24]) == []
@@ -48,14 +48,14 @@ def test_exact_interval_gives_one_complete_estimate_at_frame_25():
 
 
 def test_float_stamps_rounded_to_ns_still_settle_on_time():
-    window = FrameWindow(0.025, 25)
+    window = FrameWindow(0.025, 25, history=1)
     stamps = [int((1.5 * 3 + k * 0.025) * 1e9) for k in range(25)]  # float maths may lose a nanosecond
     outs = feed(window, stamps)
     assert len(outs) == 1 and outs[0].frames_used == 25
 
 
 def test_30fps_camera_fills_every_slot_with_the_nearest_frame():
-    window = FrameWindow(0.025, 25)
+    window = FrameWindow(0.025, 25, history=1)
     stamps = [round(k * 1e9 / 30) for k in range(40)]
     (out,) = feed(window, stamps)
     assert out.complete and out.frames_used == 25
@@ -65,7 +65,7 @@ def test_30fps_camera_fills_every_slot_with_the_nearest_frame():
 
 
 def test_slow_camera_leaves_invalid_slots_instead_of_inventing_frames():
-    window = FrameWindow(0.025, 25, slot_tolerance=0.5)
+    window = FrameWindow(0.025, 25, history=1, slot_tolerance=0.5)
     stamps = [k * 100_000_000 for k in range(7)]  # 10 fps
     (out,) = feed(window, stamps)
     assert out.complete
@@ -78,7 +78,7 @@ def test_slow_camera_leaves_invalid_slots_instead_of_inventing_frames():
 @given(st.lists(st.integers(1_000_000, 45_000_000), min_size=1, max_size=60),
        st.integers(0, 10**12), st.sampled_from([0.5, 1.0]))
 def test_jittery_stamps_match_brute_force_nearest_frame(steps, t0, tolerance):
-    window = FrameWindow(0.025, 25, gap_threshold=0.3, slot_tolerance=tolerance)
+    window = FrameWindow(0.025, 25, history=1, gap_threshold=0.3, slot_tolerance=tolerance)
     stamps = list(np.cumsum([t0] + steps))
     outs = feed(window, stamps)
     outs += window.flush()
@@ -99,7 +99,7 @@ def test_jittery_stamps_match_brute_force_nearest_frame(steps, t0, tolerance):
        st.sampled_from(["episode", "anytime"]), st.integers(1, 5), st.integers(1, 25))
 def test_random_streams_keep_invariants(events, policy, every_n, min_frames):
     """Any stamps, sizes and resets: no exception, well-formed outputs, encode at most once per frame."""
-    window = FrameWindow(0.025, 25, policy=policy, every_n=every_n, min_frames=min_frames)
+    window = FrameWindow(0.025, 25, history=1, policy=policy, every_n=every_n, min_frames=min_frames)
     stamp = 10**9
     calls = 0
     for step, size, reset in events:
@@ -129,7 +129,7 @@ def test_random_streams_keep_invariants(events, policy, every_n, min_frames):
 
 @pytest.mark.parametrize("cause", ["gap", "backwards", "size", "reset"])
 def test_window_restarts(cause):
-    window = FrameWindow(0.025, 25, gap_threshold=0.3)
+    window = FrameWindow(0.025, 25, history=1, gap_threshold=0.3)
     first = [k * DT for k in range(10)]
     assert feed(window, first) == []
     start = first[-1]
@@ -153,7 +153,7 @@ def test_window_restarts(cause):
 
 
 def test_gap_below_threshold_does_not_restart_and_leaves_holes():
-    window = FrameWindow(0.025, 25, gap_threshold=0.3, slot_tolerance=0.5)
+    window = FrameWindow(0.025, 25, history=1, gap_threshold=0.3, slot_tolerance=0.5)
     stamps = [k * DT for k in range(25) if not 5 <= k < 12]  # 0.2 s hole
     (out,) = feed(window, stamps)
     assert out.frames_used == 18 and not out.valid[5:12].any()
@@ -161,7 +161,7 @@ def test_gap_below_threshold_does_not_restart_and_leaves_holes():
 
 
 def test_duplicate_stamp_is_ignored():
-    window = FrameWindow(0.025, 25)
+    window = FrameWindow(0.025, 25, history=1)
     feed(window, [0, DT])
     calls = []
     window.add(DT, frame(), lambda *_: calls.append(1) or np.zeros(1, np.float32))
@@ -169,14 +169,14 @@ def test_duplicate_stamp_is_ignored():
 
 
 def test_anytime_policy_schedule():
-    window = FrameWindow(0.025, 25, policy="anytime", min_frames=10, every_n=5)
+    window = FrameWindow(0.025, 25, history=1, policy="anytime", min_frames=10, every_n=5)
     outs = feed(window, [k * DT for k in range(30)])
     assert [o.frames_used for o in outs] == [10, 15, 20, 25]
     assert [o.complete for o in outs] == [False, False, False, True]
 
 
 def test_flush_emits_the_final_estimate_when_the_last_slot_was_left_pending():
-    window = FrameWindow(0.025, 25)
+    window = FrameWindow(0.025, 25, history=1)
     stamps = [k * DT - (2_000_000 if k == 24 else 0) for k in range(25)]  # last frame 2 ms early
     assert feed(window, stamps) == []  # a later frame could still be nearer to slot 24
     (out,) = window.flush()
@@ -185,13 +185,13 @@ def test_flush_emits_the_final_estimate_when_the_last_slot_was_left_pending():
 
 
 def test_flush_does_not_repeat_the_last_frame_into_later_slots():
-    window = FrameWindow(0.025, 25, policy="anytime", min_frames=1, every_n=25)
+    window = FrameWindow(0.025, 25, history=1, policy="anytime", min_frames=1, every_n=25)
     outs = feed(window, [k * DT for k in range(18)]) + window.flush()
     assert len(outs[-1].valid) == 18 and chosen(outs[-1])[-1] == 17 * DT
 
 
 def test_restart_flushes_the_previous_episode():
-    window = FrameWindow(0.025, 25)
+    window = FrameWindow(0.025, 25, history=1)
     stamps = [k * DT - (2_000_000 if k == 24 else 0) for k in range(25)]
     feed(window, stamps)
     outs = feed(window, [stamps[-1] + 10**9])
@@ -199,7 +199,7 @@ def test_restart_flushes_the_previous_episode():
 
 
 def test_encode_only_for_frames_that_land_in_slots():
-    window = FrameWindow(0.025, 25, slot_tolerance=0.1)
+    window = FrameWindow(0.025, 25, history=1, slot_tolerance=0.1)
     calls = []
     for s in range(0, 26 * DT, DT // 5):  # 200 fps
         window.add(s, frame(), lambda *_, s=s: calls.append(s) or np.zeros(1, np.float32))
@@ -228,7 +228,7 @@ def kept_frames(window):
 def test_encode_gets_the_frame_of_the_latest_earlier_filled_slot():
     """The default history, for frame encoders that also see the previous observed frame: none for
     an episode's first frame, slots left empty are skipped, a restart starts again from none."""
-    window = FrameWindow(0.025, 25, slot_tolerance=0.4)
+    window = FrameWindow(0.025, 25, history=1, slot_tolerance=0.4)
     seen = []
     for k in (0, 1, 2, 5, 6):  # slots 3 and 4 stay empty
         offer(window, k * DT, k, seen)
@@ -298,7 +298,7 @@ def test_earlier_frames_are_those_of_the_final_slots(steps, tolerance, history):
 
 
 def test_the_window_keeps_only_frames_a_later_frame_may_need():
-    window = FrameWindow(0.025, 25)
+    window = FrameWindow(0.025, 25, history=1)
     for k in range(10):
         window.add(k * DT, frame(), lambda *_: np.zeros(1, np.float32))
     kept = [k for k, slot in enumerate(window._slots) if slot is not None and slot.frame is not None]
@@ -311,14 +311,14 @@ def test_the_window_keeps_only_frames_a_later_frame_may_need():
 
 def test_bad_configuration_is_refused():
     with pytest.raises(ValueError, match="policy"):
-        FrameWindow(0.025, 25, policy="sometimes")
+        FrameWindow(0.025, 25, history=1, policy="sometimes")
     with pytest.raises(ValueError, match="gap_threshold"):
-        FrameWindow(0.025, 25, gap_threshold=0.01)
+        FrameWindow(0.025, 25, history=1, gap_threshold=0.01)
     with pytest.raises(ValueError, match="history is a number of earlier frames >= 0"):
         FrameWindow(0.025, 25, history=-1)
     for interval in (float("inf"), float("nan"), 0.0):
         with pytest.raises(ValueError, match="finite frame_interval > 0"):
-            FrameWindow(interval, 25)
+            FrameWindow(interval, 25, history=1)
 
 
 def test_clip_output_restarts_on_a_size_change_as_a_stream_does():

@@ -154,7 +154,11 @@ class FitConfig:
     progress: bool = True
     amp: bool = False  # bfloat16 autocast on CUDA
     stop_after: int = 0  # >0: return after this many epochs in this call (time-sliced jobs); rerun to go on
-    select: str = "score"  # the validation metric (lower is better) that picks BEST: score (CE + RegL1) or regl1
+    select: str = "score"  # the validation metric (lower is better) that picks BEST, one of SELECT_METRICS
+
+
+# Validation metrics that can pick BEST (logged by models.common.task_loss): CE + RegL1, or RegL1 alone.
+SELECT_METRICS = ("score", "regl1")
 
 
 def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: Path, cfg: FitConfig, rt: Runtime,
@@ -166,6 +170,8 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
     step, RNG, history, meta) and BEST by the validation `cfg.select` metric (lower is better).
     A run finds LAST in out_dir and resumes from it.
     """
+    if cfg.select not in SELECT_METRICS:
+        raise ValueError(f"select must be one of {SELECT_METRICS}, got {cfg.select!r}")
     out_dir.mkdir(parents=True, exist_ok=True)
     # Also used with one process: the same seeded shuffle per epoch, so a resumed run sees the same order.
     sampler = DistributedSampler(train_set, num_replicas=rt.world, rank=rt.rank, shuffle=True, seed=cfg.seed)
@@ -193,6 +199,10 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
         # Loaded on the CPU: load_state_dict moves weights and optimizer moments to the parameters'
         # device, and AdamW's step counters must stay on the CPU (on a GPU each step would sync).
         state = load_checkpoint(last)
+        # BEST so far was picked by the run's metric: another one would compare unlike numbers.
+        if state.get("select", "score") != cfg.select:
+            raise ValueError(f"{last} was trained with --select {state.get('select', 'score')}; resume it with the "
+                             f"same, or start a fresh run folder for --select {cfg.select}")
         raw.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         epoch, step, history, best = state["epoch"], state["step"], state["history"], state["best"]
@@ -238,7 +248,7 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
                 save_checkpoint(out_dir / BEST, {"model": raw.state_dict(), "epoch": epoch, "meta": meta})
             save_checkpoint(last, {"model": raw.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch,
                                    "step": step, "rng": rng_state(), "history": history, "best": best,
-                                   "meta": meta})
+                                   "select": cfg.select, "meta": meta})
             (out_dir / "history.json").write_text(json.dumps(history, indent=1))
             tqdm.write(f"{desc} " + " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                              for k, v in record.items()))

@@ -11,7 +11,8 @@ from torch.utils.data import Dataset as TorchDataset
 from ad_estimator.metrics import Predictions
 from ad_sim.materials import PARAMETER_NAMES, denormalise
 from training import data
-from training.engine import BEST, FitConfig, fit, init_runtime, load_checkpoint, main_first, seed_everything
+from training.engine import (BEST, SELECT_METRICS, FitConfig, fit, init_runtime, load_checkpoint, main_first,
+                             seed_everything)
 from training.models.common import task_loss
 from training.models.teacher import TEACHER_PRESETS, Teacher, TeacherConfig
 
@@ -105,9 +106,6 @@ def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: 
     normalised = np.concatenate(params)
     si = np.stack([denormalise(n, normalised[:, j]) for j, n in enumerate(PARAMETER_NAMES)], axis=1)
     return Predictions(ds.labels, ds.params_si, np.concatenate(probs), si, list(ds.episode_ids))
-
-
-SELECT_METRICS = ("score", "regl1")  # logged by models.common.task_loss for every run
 
 
 def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr: float = 1e-4) -> None:

@@ -316,6 +316,8 @@ class EstimatorModel:
         ``earlier``: the episode's earlier observed masks, newest first (empty for its first frame);
         only the first ``info.previous_frames`` are read. Where fewer are given, the oldest one given
         (or the mask itself) stands in for the missing ones, as in training."""
+        if isinstance(earlier, np.ndarray):  # one mask, as encode(mask, previous) once took, would pass as rows
+            raise TypeError("earlier is a sequence of masks, newest first (e.g. [previous]), not one array")
         if self._frame_session is None:
             return self.prepare(mask)
         count = self.info.previous_frames

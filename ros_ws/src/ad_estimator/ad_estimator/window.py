@@ -19,7 +19,8 @@ Frames. The caller offers each frame with an ``encode(frame, earlier)`` function
 the frame lands in a slot. ``earlier`` holds the frames of the latest ``history`` filled slots
 before it in the same episode, newest first: fewer at the episode's start, none for its first
 frame. It is for models whose frame encoder also sees earlier observed frames (``history`` is then
-the model's ``previous_frames``; default 1); others ignore it. A frame that fills several slots (a
+the model's ``previous_frames``, required: a wrong one gives plausible but wrong estimates);
+others ignore it. A frame that fills several slots (a
 slow camera, a dropped frame) is encoded once, with the frames before its first slot; a later
 frame finds it once per slot it fills, as the model's head sees it. The window keeps only the
 frames a later frame can still need as one of its earlier ones.
@@ -94,7 +95,7 @@ class FrameWindow:
 
     def __init__(self, frame_interval: float, frame_count: int, gap_threshold: float = DEFAULT_GAP_THRESHOLD,
                  slot_tolerance: float = DEFAULT_SLOT_TOLERANCE, policy: str = "episode", every_n: int = 1, min_frames: int = 10,
-                 history: int = 1):
+                 *, history: int):
         if policy not in POLICIES:
             raise ValueError(f"output policy must be one of {POLICIES}, got {policy!r}")
         if history < 0:
