@@ -59,6 +59,14 @@ def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
                  str(tmp_path / "cache"), "--out", str(report_dir), "--frames", "15,20", "14", "--threads", "2",
                  "--no-progress"]) == 0
     assert set(json.loads((report_dir / "metrics.json").read_text())["frames"]) == {"25", "20", "15", "14"}
+    # Per-episode predictions beside the report, in ad_estimator.evaluate's field names: they give its figures.
+    predictions = json.loads((report_dir / "predictions.json").read_text())
+    assert set(predictions["frames"]) == {"25", "20", "15", "14"}
+    episodes = predictions["frames"]["25"]
+    assert len(episodes) == 6 and len({e["episode_id"] for e in episodes}) == 6
+    correct = sum(e["material"] == e["true_material"] for e in episodes)
+    assert correct / 6 == json.loads((report_dir / "metrics.json").read_text())["frames"]["25"]["accuracy"]
+    assert all(len(e["raw_parameters"]) == len(predictions["parameter_names"]) == 4 for e in episodes)
     # The summary is recorded next to the model unless --no-record; a corrupt record fails before the work.
     record = onnx_path.with_name("streaming_full.metrics.json")
     assert "unseen" in json.loads(record.read_text())["evaluation"]

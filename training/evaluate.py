@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ad_estimator.metrics import TEMPORAL_OOD_FRAMES, FrameCounts, Predictions, format_table, json_text, write_report
+from ad_estimator.metrics import (PARAMETER_NAMES, TEMPORAL_OOD_FRAMES, FrameCounts, Predictions, format_table, json_text,
+                                  write_report)
 from ad_estimator.model import EstimatorModel
 from ad_estimator.window import clip_output
 from ad_sim.materials import FRAME_COUNT
@@ -55,18 +56,21 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
     if out is None:
         out = Path(model_path).with_suffix("").with_name(Path(model_path).stem + "_eval")
     results = write_report(by_frames, out, title)
+    (Path(out) / "predictions.json").write_text(json_text(
+        {"model_id": model.model_id, "model_path": str(model_path), "parameter_names": list(PARAMETER_NAMES),
+         "frames": {str(k): p.episodes() for k, p in by_frames.items()}}, indent=None))  # compact: 10 prefix lengths
     if record:
         print(f"recorded in {update_model_metrics(model_path, {'evaluation': {Path(bags).name: summary(results)}})}")
     table_rows = {k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}
     print(format_table(table_rows, title))
-    print(f"report: {Path(out) / 'report.md'}")
+    print(f"report: {Path(out) / 'report.md'}  predictions: {Path(out) / 'predictions.json'}")
     return results
 
 
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     p = p or argparse.ArgumentParser(prog="python -m training evaluate")
     p.description = ("Evaluate an exported student (.onnx) on bags: per-family Acc and parameter errors, RegL1, "
-                     "temporal-OOD rows; writes metrics.json, report.md and plots, and adds the summary to "
+                     "temporal-OOD rows; writes metrics.json, report.md, plots and per-episode predictions.json, and adds the summary to "
                      "<model>.metrics.json next to the model.")
     p.add_argument("--model", required=True, help="exported student .onnx (for streaming: the temporal head file)")
     p.add_argument("--bags", required=True, help="evaluation bags (e.g. bags/small/unseen); its folder name keys "

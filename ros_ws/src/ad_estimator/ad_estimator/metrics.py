@@ -79,6 +79,17 @@ class Predictions:
     def pred_class(self) -> np.ndarray:
         return self.probabilities.argmax(axis=1)
 
+    def episodes(self) -> list[dict]:
+        """One JSON-ready record per clip, with the field names of ad_estimator.evaluate's
+        predictions.json (parameters in PARAMETER_NAMES order): for per-episode analysis."""
+        return [{"episode_id": self.episode_ids[i] if self.episode_ids else str(i),
+                 "true_material": FAMILIES[self.true_class[i]],
+                 "true_parameters": {n: float(v) for n, v in zip(PARAMETER_NAMES, self.true_params[i])
+                                     if not math.isnan(v)},
+                 "material": FAMILIES[self.pred_class[i]],
+                 "probabilities": self.probabilities[i].tolist(),
+                 "raw_parameters": self.pred_params[i].tolist()} for i in range(len(self))]
+
     def __len__(self) -> int:
         return len(self.true_class)
 
