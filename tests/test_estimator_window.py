@@ -226,7 +226,7 @@ def kept_frames(window):
 
 
 def test_encode_gets_the_frame_of_the_latest_earlier_filled_slot():
-    """The default history, for frame encoders that also see the previous observed frame: none for
+    """History 1, for frame encoders that also see the previous observed frame: none for
     an episode's first frame, slots left empty are skipped, a restart starts again from none."""
     window = FrameWindow(0.025, 25, history=1, slot_tolerance=0.4)
     seen = []

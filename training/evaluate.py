@@ -70,8 +70,8 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     p = p or argparse.ArgumentParser(prog="python -m training evaluate")
     p.description = ("Evaluate an exported student (.onnx) on bags: per-family Acc and parameter errors, RegL1, "
-                     "temporal-OOD rows; writes metrics.json, report.md, plots and per-episode predictions.json, and adds the summary to "
-                     "<model>.metrics.json next to the model.")
+                     "temporal-OOD rows; writes metrics.json, report.md, plots and per-episode predictions.json, "
+                     "and adds the summary to <model>.metrics.json next to the model.")
     p.add_argument("--model", required=True, help="exported student .onnx (for streaming: the temporal head file)")
     p.add_argument("--bags", required=True, help="evaluation bags (e.g. bags/small/unseen); its folder name keys "
                                                  "the results in <model>.metrics.json")

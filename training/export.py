@@ -1,8 +1,8 @@
 """Export a student checkpoint to ONNX with the metadata of docs/architecture.md.
 
 streaming: <name>.frame.onnx (frame (B,C,H,W) -> embedding (B,D); channels after the first hold
-the earlier observed masks, newest first, see ad.frame_inputs) and <name>.onnx (embeddings (B,T,D), valid (B,T) ->
-logits, params, params_logvar). clip: <name>.onnx (masks (B,T,H,W),
+the earlier observed masks, newest first, see ad.frame_inputs) and <name>.onnx (embeddings
+(B,T,D), valid (B,T) -> logits, params, params_logvar). clip: <name>.onnx (masks (B,T,H,W),
 valid (B,T) -> the same outputs; fewer than 25 frames are zero-padded inside the graph).
 """
 from __future__ import annotations

@@ -169,13 +169,10 @@ def earlier_observed_slots(valid: torch.Tensor, n: int) -> torch.Tensor:
     Where there are fewer, the oldest one available stands in (the episode's first frame; for
     that frame, itself: the first frame has no motion yet). The estimator's window follows the
     same rule (ad_estimator.model.EstimatorModel.encode)."""
-    t = valid.shape[1]
-    slots = torch.arange(t, device=valid.device)
-    earlier = slots[None, :] < slots[:, None]  # [k, j]: slot j comes before slot k
-    # The latest earlier valid slot (ReduceMax over a triangle: cummax does not export to ONNX).
-    candidates = torch.where(earlier[None] & (valid[:, None, :] > 0), slots[None, None, :], -1)
-    latest = candidates.amax(-1)
-    previous = torch.where(latest >= 0, latest, slots[None, :])  # (B, T); a slot without one: itself
+    slots = torch.arange(valid.shape[1], device=valid.device).expand_as(valid)
+    latest = torch.where(valid > 0, slots, -1).cummax(1).values  # the latest valid slot up to each slot
+    latest = torch.cat([latest.new_full((len(valid), 1), -1), latest[:, :-1]], 1)  # ... before each slot
+    previous = torch.where(latest >= 0, latest, slots)  # (B, T); a slot without one: itself
     sources = [previous]
     for _ in range(n - 1):  # the k-th previous is the previous of the (k-1)-th
         sources.append(previous.gather(1, sources[-1]))

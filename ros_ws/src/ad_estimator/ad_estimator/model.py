@@ -321,12 +321,9 @@ class EstimatorModel:
         if self._frame_session is None:
             return self.prepare(mask)
         count = self.info.previous_frames
-        if count == 0:
-            frame = self.prepare(mask)[None, None]
-        else:
-            masks = [mask, *earlier[:count]]
-            masks += [masks[-1]] * (count + 1 - len(masks))
-            frame = np.stack([self._prepared(m) for m in masks])[None]
+        masks = [mask, *earlier[:count]]
+        masks += [masks[-1]] * (count + 1 - len(masks))
+        frame = np.stack([self._prepared(m) for m in masks])[None]
         return self._frame_session.run(["embedding"], {"frame": frame})[0][0]
 
     def _prepared(self, mask: np.ndarray) -> np.ndarray:

@@ -20,10 +20,10 @@ the frame lands in a slot. ``earlier`` holds the frames of the latest ``history`
 before it in the same episode, newest first: fewer at the episode's start, none for its first
 frame. It is for models whose frame encoder also sees earlier observed frames (``history`` is then
 the model's ``previous_frames``, required: a wrong one gives plausible but wrong estimates);
-others ignore it. A frame that fills several slots (a
-slow camera, a dropped frame) is encoded once, with the frames before its first slot; a later
-frame finds it once per slot it fills, as the model's head sees it. The window keeps only the
-frames a later frame can still need as one of its earlier ones.
+others ignore it. A frame that fills several slots (a slow camera, a dropped frame) is encoded
+once, with the frames before its first slot; a later frame finds it once per slot it fills, as the
+model's head sees it. The window keeps only the frames a later frame can still need as one of its
+earlier ones.
 
 Episodes. The window restarts (its next frame becomes frame 0) on a stamp gap larger than
 ``gap_threshold`` seconds, on stamps going backwards, on a change of image size and on
