@@ -215,17 +215,20 @@ def test_encode_stacks_the_earlier_frames_newest_first_the_oldest_standing_in(tm
     assert not np.allclose(model.encode(masks[4], [masks[3], masks[2]]), model.encode(masks[4], [masks[2], masks[3]]))
 
 
-def test_encode_of_the_bundled_model_sees_the_previous_frame():
+def test_encode_of_the_bundled_model_sees_its_earlier_frames():
     model = EstimatorModel.load(BUNDLED_MODEL)
-    assert model.info.frame_inputs == ("mask", "previous_mask") and model.info.previous_frames == 1
-    previous, mask = falling_masks(2, seed=4)
-    np.testing.assert_allclose(model.encode(mask, [previous]),
-                               _embedding(model, np.stack([model.prepare(mask), model.prepare(previous)])),
+    assert model.info.frame_inputs == frame_inputs(3) and model.info.previous_frames == 3
+    *earlier, mask = falling_masks(4, seed=4)
+    earlier = earlier[::-1]  # newest first
+    prepared = [model.prepare(m) for m in (mask, *earlier)]
+    np.testing.assert_allclose(model.encode(mask, earlier), _embedding(model, np.stack(prepared)),
                                rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(model.encode(mask), model.encode(mask, [mask]), rtol=1e-6, atol=1e-6)
+    # Fewer earlier frames than the model reads: the oldest one there stands in; none: the frame itself.
+    np.testing.assert_allclose(model.encode(mask, earlier[:1]), model.encode(mask, earlier[:1] * 3), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(model.encode(mask), model.encode(mask, [mask] * 3), rtol=1e-6, atol=1e-6)
     # One array where a sequence belongs (the old encode(mask, previous)) would be read as rows: refused.
     with pytest.raises(TypeError, match="sequence of masks"):
-        model.encode(mask, previous)
+        model.encode(mask, earlier[0])
 
 
 @pytest.mark.parametrize("previous_frames", [0, 1, 3])

@@ -11,45 +11,28 @@ from ad_estimator.metrics import format_table
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results" / "paper"
 
-SHIPPED = "**shipped**: streaming student, previous frame as a second input channel, full, 20 epochs"
-CANDIDATE = "candidate, not shipped: 3 earlier frames as input channels, RegL1 weight 2.0, full, 20 epochs"
+SHIPPED = "**shipped**: streaming student, 3 earlier frames as input channels, RegL1 weight 2.0, full, 20 epochs"
 SHIPPED_NONE = "ablation of the shipped: without alignment (task loss only), 20 epochs"
 SHIPPED_ALIGN_ONLY = "ablation of the shipped: alignment only (teacher's frozen predictor), 20 epochs"
-PREVIOUS = "previous shipped: the same with one input channel (the current mask only)"
-NONE_20 = "ablation of the previous shipped: without alignment (task loss only), 20 epochs"
-NONE_10 = "ablation of the previous shipped: without alignment (task loss only), 10 epochs"
-ALIGN_ONLY = "ablation of the previous shipped: alignment only (teacher's frozen predictor), 10 epochs"
-ALIGN_1 = "variant of the previous shipped: alignment weight 1.0 instead of 0.1, 20 epochs"
-RECIPE = "previous recipe (SPEC weights): streaming, full, 20 epochs"
+PREVIOUS = "previous shipped: 1 earlier frame as input channel, RegL1 weight 1.0, full, 20 epochs"
+PREVIOUS_NONE = "ablation of the previous shipped: without alignment (task loss only), 20 epochs"
+PREVIOUS_ALIGN_ONLY = "ablation of the previous shipped: alignment only (teacher's frozen predictor), 20 epochs"
+BEFORE = "shipped before that: the current mask only (no earlier frame), full, 20 epochs"
 # README section -> {row label (first cell) -> metrics file}
 ROWS = {
-    "### Unseen objects": {
-        SHIPPED: "streaming_previous_frame20_unseen/metrics.json",
-        CANDIDATE: "experiments/earlier_frames/h3reg2_unseen.json",
-        SHIPPED_NONE: "ablation_previous_frame_none_20ep_unseen.json",
-        SHIPPED_ALIGN_ONLY: "ablation_previous_frame_align_only_20ep_unseen.json",
-        PREVIOUS: "streaming_full20_unseen/metrics.json",
-        NONE_20: "ablation_none_20ep_unseen.json",
-        NONE_10: "ablation_none_10ep_unseen.json",
-        ALIGN_ONLY: "ablation_align_only_10ep_unseen.json",
-        ALIGN_1: "experiments/align_weight1_full20_unseen.json",
-        RECIPE: "experiments/previous_shipped_full20_unseen.json",
-        "UniFormer-style clip student, full, 2 epochs (paper preset)": "uniformer_full2_unseen/metrics.json",
-    },
-    "### Seen objects": {
-        SHIPPED: "streaming_previous_frame20_seen/metrics.json",
-        CANDIDATE: "experiments/earlier_frames/h3reg2_seen.json",
-        SHIPPED_NONE: "ablation_previous_frame_none_20ep_seen.json",
-        SHIPPED_ALIGN_ONLY: "ablation_previous_frame_align_only_20ep_seen.json",
-        PREVIOUS: "streaming_full20_seen/metrics.json",
-        NONE_20: "ablation_none_20ep_seen.json",
-        NONE_10: "ablation_none_10ep_seen.json",
-        ALIGN_ONLY: "ablation_align_only_10ep_seen.json",
-        ALIGN_1: "experiments/align_weight1_full20_seen.json",
-        RECIPE: "experiments/previous_shipped_full20_seen.json",
-    },
+    f"### {title}": {
+        SHIPPED: f"streaming_earlier3_reg2_{split}/metrics.json",
+        SHIPPED_NONE: f"ablation_earlier3_reg2_none_20ep_{split}.json",
+        SHIPPED_ALIGN_ONLY: f"ablation_earlier3_reg2_align_only_20ep_{split}.json",
+        PREVIOUS: f"streaming_previous_frame20_{split}/metrics.json",
+        PREVIOUS_NONE: f"ablation_previous_frame_none_20ep_{split}.json",
+        PREVIOUS_ALIGN_ONLY: f"ablation_previous_frame_align_only_20ep_{split}.json",
+        BEFORE: f"streaming_full20_{split}/metrics.json",
+    } | ({"UniFormer-style clip student, full, 2 epochs (paper preset)": "uniformer_full2_unseen/metrics.json"}
+         if split == "unseen" else {})
+    for title, split in (("Unseen objects", "unseen"), ("Seen objects", "seen"))
 }
-SHIPPED_REPORTS = "streaming_previous_frame20_{split}"
+SHIPPED_REPORTS = "streaming_earlier3_reg2_{split}"
 
 
 def cells(line: str) -> list[str]:
@@ -106,6 +89,21 @@ def test_the_shipped_reports_are_the_bundled_models(split):
     assert f"`{bundled['model_id']}`" in (models / "MODEL_CARD.md").read_text()
 
 
+def test_the_estimator_runtime_reproduces_the_shipped_report():
+    """The bundled model run through the robot's code path (ad_estimator.evaluate: MCAP masks,
+    the node's preprocessing and frame window) on the regenerated unseen split gives the report's
+    accuracies, and its errors differ from the report's (training-side evaluation) by rounding only."""
+    runtime = json.loads((RESULTS / SHIPPED_REPORTS.format(split="unseen") / "estimator_runtime.json").read_text())
+    report = json.loads((RESULTS / SHIPPED_REPORTS.format(split="unseen") / "metrics.json").read_text())
+    a, b = runtime["frames"]["25"], report["frames"]["25"]
+    assert a["confusion"] == b["confusion"]
+    assert a["regl1"] == pytest.approx(b["regl1"], abs=5e-4)
+    for family, errors in b["families"].items():
+        for subset in ("correct", "all"):
+            for name, value in errors[subset].items():
+                assert a["families"][family][subset][name] == pytest.approx(value, abs=5e-4), (family, subset, name)
+
+
 def test_readme_psnr_row_is_the_bundled_models():
     """The README's re-simulation PSNR row of the shipped student quotes its JSON, which was made
     with the bundled model."""
@@ -118,7 +116,7 @@ def test_readme_psnr_row_is_the_bundled_models():
     expected = (f"median {psnr['median']:.1f}, mean {psnr['mean']:.1f} (jelly {families['jelly']:.1f}, "
                 f"plasticine {families['plasticine']:.1f}, sand {families['sand']:.1f})")
     rows = table_rows((ROOT / "README.md").read_text(), "### Re-simulation PSNR")
-    assert rows["shipped streaming student (previous frame), 64 random unseen instances"][0] == expected
+    assert rows["shipped streaming student, 64 random unseen instances"][0] == expected
 
 
 # docs/results/paper/experiments/README.md, section 4: row label -> metrics file
@@ -138,7 +136,7 @@ SECTION_4 = {
 
 # docs/results/paper/experiments/README.md, section 5: row label -> metrics file
 SECTION_5 = {
-    "unseen, `pf` (**shipped now**)": "streaming_previous_frame20_unseen/metrics.json",
+    "unseen, `pf` (shipped after this section)": "streaming_previous_frame20_unseen/metrics.json",
     "unseen, `w1` (`full`, one input channel)": "streaming_full20_unseen/metrics.json",
     "unseen, `none20`": "ablation_none_20ep_unseen.json",
     "seen, `pf`": "streaming_previous_frame20_seen/metrics.json",
@@ -149,7 +147,7 @@ SECTION_5 = {
 
 # docs/results/paper/experiments/README.md, section 6: row label -> metrics file
 SECTION_6 = {
-    "unseen, `pf` (`full`, **shipped**)": "streaming_previous_frame20_unseen/metrics.json",
+    "unseen, `pf` (`full`, shipped then)": "streaming_previous_frame20_unseen/metrics.json",
     "unseen, `pfnone`": "ablation_previous_frame_none_20ep_unseen.json",
     "unseen, `pfalign`": "ablation_previous_frame_align_only_20ep_unseen.json",
     "seen, `pf`": "streaming_previous_frame20_seen/metrics.json",
@@ -162,14 +160,26 @@ SECTION_6 = {
 EARLIER_FRAMES = {"h1lr3": "1 earlier frame, lr 3e-4", "h2": "2 earlier frames", "h3": "3 earlier frames",
                   "h3lr3": "3, lr 3e-4", "h5": "5 earlier frames", "h3wide": "3, channels 24-192",
                   "h3reg2": "3, RegL1 weight 2.0", "h3lr3wide": "3, lr 3e-4, channels 24-192"}
-SECTION_7 = {f"{split}, `pf` (1 earlier frame, **shipped**)": f"streaming_previous_frame20_{split}/metrics.json"
+SECTION_7 = {f"{split}, `pf` (1 earlier frame, shipped then)": f"streaming_previous_frame20_{split}/metrics.json"
              for split in ("seen", "unseen")} | {
-    f"{split}, `{run}` ({what})": f"experiments/earlier_frames/{run}_{split}.json"
+    f"{split}, `{run}` ({what})": (f"streaming_earlier3_reg2_{split}/metrics.json" if run == "h3reg2"
+                                   else f"experiments/earlier_frames/{run}_{split}.json")
     for split in ("seen", "unseen") for run, what in EARLIER_FRAMES.items()}
 
 
+# docs/results/paper/experiments/README.md, section 8: row label -> metrics file
+SEED_RUNS = {"h3reg2_s1": "`h3reg2`, seed 1", "h3reg2_s2": "`h3reg2`, seed 2", "pf_s1": "`pf`, seed 1",
+             "pf_s2": "`pf`, seed 2", "pfreg2": "1 earlier frame, RegL1 weight 2.0", "h3reg3": "3, RegL1 weight 3.0"}
+SECTION_8 = {
+    f"{split}, `h3reg2`, seed 0 (**shipped**)": f"streaming_earlier3_reg2_{split}/metrics.json" for split in ("seen", "unseen")
+} | {f"{split}, `pf`, seed 0": f"streaming_previous_frame20_{split}/metrics.json" for split in ("seen", "unseen")} | {
+    f"{split}, {what}": f"experiments/seeds/{run}_{split}.json" for split in ("seen", "unseen") for run, what in SEED_RUNS.items()
+} | {f"{split}, `h3reg2`, {ablation}": f"ablation_earlier3_reg2_{ablation}_20ep_{split}.json"
+     for split in ("seen", "unseen") for ablation in ("none", "align_only")}
+
+
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
-                                                   ("## 7. ", SECTION_7)])
+                                                   ("## 7. ", SECTION_7), ("## 8. ", SECTION_8)])
 def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
     for label, file in rows_to_files.items():
