@@ -41,7 +41,7 @@ def test_reports_per_frame_per_instance_and_throughput(tmp_path):
 @pytest.mark.parametrize("previous_frames", [0, 1, 3])
 def test_times_a_trained_checkpoint_when_given(tmp_path, previous_frames):
     config = student_preset("streaming", "tiny", TEACHER_PRESETS["tiny"].z_dim)
-    # The bundled model's encoder has 2 inputs (1 earlier frame); the frame encoder's input grows with them.
+    # The bundled model's encoder has 4 inputs (3 earlier frames); the frame encoder's input grows with them.
     config = dataclasses.replace(config, previous_frames=previous_frames)
     model = build_student(config)
     checkpoint = tmp_path / "student.pt"
