@@ -1,4 +1,4 @@
-"""python -m training {cache,teacher,student,export,evaluate,pipeline,baseline,resim-psnr}"""
+"""python -m training {cache,teacher,student,export,evaluate,pipeline,baseline,resim-psnr,compare}"""
 from __future__ import annotations
 
 import argparse
@@ -37,7 +37,8 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 def main(argv: list[str] | None = None) -> int:
     from ad_sim.rosbag import one_line_warnings
-    from training import baseline, engine, evaluate, export, pipeline, resim_psnr, train_student, train_teacher
+    from training import (baseline, compare, engine, evaluate, export, pipeline, resim_psnr, train_student,
+                          train_teacher)
 
     one_line_warnings()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -52,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         "pipeline": (pipeline.build_parser, pipeline.run, "bags (generated if missing) -> exported, evaluated model"),
         "baseline": (baseline.build_parser, baseline.run, "per-scene CMA-ES baseline over re-simulated masks"),
         "resim-psnr": (resim_psnr.build_parser, resim_psnr.run, "re-simulation PSNR of a student's estimates on bags"),
+        "compare": (compare.build_parser, compare.run, "compare groups of evaluated runs (e.g. seeds of two recipes)"),
     }
     for name, (build, _, help_text) in commands.items():
         build(sub.add_parser(name, help=help_text, formatter_class=_HelpFormatter))

@@ -163,7 +163,7 @@ def evaluate_all(by_frames: dict[int, Predictions]) -> dict:
     return {str(k): compute_metrics(p) for k, p in sorted(by_frames.items(), reverse=True)}
 
 
-def _columns() -> list[tuple[str, str, str | None]]:
+def table_columns() -> list[tuple[str, str, str | None]]:
     """(family, label, parameter or None for Acc) in the paper's column order."""
     ranges = family_ranges()
     cols = []
@@ -188,7 +188,7 @@ def json_text(obj, indent: int = 2) -> str:
     return json.dumps(clean(obj), indent=indent, allow_nan=False)
 
 
-def _cell(value: float | None) -> str:
+def table_cell(value: float | None) -> str:
     """A table cell; n/a where no clip qualified (e.g. no correctly classified clip of a family):
     NaN in memory, null in a metrics.json read back."""
     return "n/a" if value is None or math.isnan(value) else f"{value:.3f}"
@@ -197,7 +197,7 @@ def _cell(value: float | None) -> str:
 def format_table(results: dict, title: str = "", which: str = "correct") -> str:
     """The paper's table layout as Markdown: one row per number of observed frames (the
     full clip first, then the temporal-OOD rows). `which` is "correct" (paper) or "all"."""
-    cols = _columns()
+    cols = table_columns()
     header = ["frames"] + [label for _, label, _ in cols] + ["RegL1"]
     lines = []
     if title:
@@ -210,8 +210,8 @@ def format_table(results: dict, title: str = "", which: str = "correct") -> str:
         row = [str(k)]
         for family, _, name in cols:
             fam = m["families"][family]
-            row.append(_cell(fam["acc"] if name is None else fam[which][name]))
-        row.append(_cell(m["regl1"]))
+            row.append(table_cell(fam["acc"] if name is None else fam[which][name]))
+        row.append(table_cell(m["regl1"]))
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines)
 

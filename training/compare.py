@@ -1,0 +1,184 @@
+"""Compare groups of evaluated runs (e.g. the seeds of one recipe against those of another) from
+their metrics files: is a difference between recipes larger than the spread between seeds?
+
+Reads what `python -m training evaluate` and `ros2 run ad_estimator evaluate` write (metrics.json),
+scores nothing again, and reports in the paper's column layout (ad_estimator.metrics).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import textwrap
+from pathlib import Path
+
+import numpy as np
+
+from ad_estimator.metrics import json_text, table_cell, table_columns
+from ad_sim.materials import FRAME_COUNT
+
+
+def parse_group(text: str) -> tuple[str, list[Path]]:
+    """`NAME=PATH[,PATH...]` -> (name, paths)."""
+    name, sep, paths = text.partition("=")
+    files = [p.strip() for p in paths.split(",")]
+    if not sep or not name.strip() or not all(files):
+        raise ValueError(f"--group {text!r}: expected NAME=PATH[,PATH...] (a name, '=', then metrics files or "
+                         "report folders separated by commas)")
+    return name.strip(), [Path(f) for f in files]
+
+
+def parse_groups(texts: list[str]) -> dict[str, list[Path]]:
+    groups = {}
+    for text in texts:
+        name, files = parse_group(text)
+        if name in groups:
+            raise ValueError(f"--group {text!r}: the name {name!r} is already used by another --group; give each "
+                             "group its own name")
+        groups[name] = files
+    return groups
+
+
+def read_run(path: Path, frames: int, which: str) -> tuple[Path, dict[str, float]]:
+    """(the metrics file, its table cells at `frames` keyed by column label, NaN where no clip
+    qualified) of a metrics file or of the metrics.json in a report folder."""
+    file = path / "metrics.json" if path.is_dir() else path
+    hint = "pass a metrics.json written by python -m training evaluate, or its report folder"
+    try:
+        metrics = json.loads(file.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{file} does not exist; {hint}") from None
+    except OSError as exc:
+        raise ValueError(f"{file} cannot be read ({exc.strerror}); {hint}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{file} is not valid JSON ({exc}); {hint}") from None
+    if not isinstance(metrics, dict) or not isinstance(metrics.get("frames"), dict):
+        raise ValueError(f"{file} has no \"frames\" object, so it is not a metrics file; {hint}")
+    if str(frames) not in metrics["frames"]:
+        raise ValueError(f"{file} has no entry for {frames} frames (it has {', '.join(metrics['frames'])}); choose "
+                         "one of those with --frames")
+    entry = metrics["frames"][str(frames)]
+    try:
+        families = entry["families"]
+        values = {label: families[family]["acc"] if name is None else families[family][which][name]
+                  for family, label, name in table_columns()}
+        values["RegL1"] = entry["regl1"]
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{file}: its {frames}-frame metrics lack {exc}; {hint}") from None
+    return file, {label: math.nan if v is None else float(v) for label, v in values.items()}
+
+
+def _sd(values: np.ndarray) -> float:
+    """Sample SD (ddof=1); NaN for a single run, which has no spread."""
+    return float(values.std(ddof=1)) if len(values) > 1 else math.nan
+
+
+def _spread_cell(values: np.ndarray) -> str:
+    """mean ± sample SD over a group's runs; the plain value for one run; n/a if a run lacks it."""
+    mean = values.mean()
+    if len(values) == 1 or math.isnan(mean):
+        return table_cell(mean)
+    return f"{table_cell(mean)} ± {table_cell(_sd(values))}"
+
+
+def _precise(value: float) -> str:
+    """A difference between recipes is often below the table's 3 decimals."""
+    return "n/a" if math.isnan(value) else f"{value:.4f}"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|",
+            *("| " + " | ".join(row) + " |" for row in rows)]
+
+
+def compare(groups: dict[str, list[Path]], out: str | Path, frames: int = FRAME_COUNT, which: str = "correct",
+            title: str | None = None) -> dict:
+    """Writes compare.md, compare.json and compare.png into `out`; returns what compare.json holds."""
+    runs = {name: [read_run(path, frames, which) for path in paths] for name, paths in groups.items()}
+    title = title or f"{' vs '.join(groups)} ({frames} frames)"
+    labels = [label for _, label, _ in table_columns()] + ["RegL1"]
+    arrays = {name: np.array([[v[label] for label in labels] for _, v in rs]) for name, rs in runs.items()}
+    regl1 = {name: a[:, -1] for name, a in arrays.items()}
+    first = next(iter(groups))
+    differences = [{"group": name, "versus": first,
+                    "regl1_mean_difference": float(regl1[name].mean() - regl1[first].mean()),
+                    "welch_standard_error": math.sqrt(_sd(regl1[name]) ** 2 / len(regl1[name])
+                                                      + _sd(regl1[first]) ** 2 / len(regl1[first])),
+                    "first_runs_below_every_run": int((regl1[first] < regl1[name].min()).sum()),
+                    "first_runs": len(regl1[first])} for name in list(groups)[1:]]
+    result = {"title": title, "frames": frames, "which": which, "differences": differences,
+              "groups": {name: {"n": len(rs), "mean": dict(zip(labels, arrays[name].mean(axis=0).tolist())),
+                                "sd": {label: _sd(arrays[name][:, j]) for j, label in enumerate(labels)},
+                                "runs": [{"path": str(f), **v} for f, v in rs]} for name, rs in runs.items()}}
+
+    md = [f"# {title}", "",
+          f"Metrics at {frames} frames observed; parameter errors over "
+          f"{'correctly classified' if which == 'correct' else 'all'} clips of each family (E, yield: log-MAE; "
+          "nu: MAE; phi: MAE in degrees). Groups: mean ± sample SD over their runs (n).", "",
+          *_table(["group", *labels, "n"],
+                  [[name, *(_spread_cell(a[:, j]) for j in range(len(labels))), str(len(a))]
+                   for name, a in arrays.items()]),
+          "", "Every run:", "",
+          *_table(["group", "run", *labels],
+                  [[name, str(Path(f.parent.name) / f.name), *(table_cell(v[label]) for label in labels)]
+                   for name, rs in runs.items() for f, v in rs])]
+    if differences:
+        md += ["", f"RegL1 against {first}:", ""]
+        md += [f"- {d['group']}: mean difference {d['regl1_mean_difference']:+.4f} ({d['group']} − {first}), Welch "
+               f"standard error {_precise(d['welch_standard_error'])}; {d['first_runs_below_every_run']} of "
+               f"{d['first_runs']} {first} runs are below every {d['group']} run" for d in differences]
+    md += ["", "![RegL1 of every run](compare.png)", ""]
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "compare.md").write_text("\n".join(md))
+    (out / "compare.json").write_text(json_text(result))
+    plot_regl1(regl1, out / "compare.png", f"RegL1 ({frames} frames)", title)
+    return result
+
+
+def plot_regl1(regl1: dict[str, np.ndarray], path: Path, ylabel: str, title: str) -> None:
+    """Every run's RegL1 as a dot over its group, the group mean as a bar."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(max(4.0, 1.2 * len(regl1) + 2), 4))
+    for i, values in enumerate(regl1.values()):
+        ax.scatter(np.full(len(values), i), values, color="C0", zorder=2, label="run" if i == 0 else None)
+        ax.hlines(values.mean(), i - 0.25, i + 0.25, color="k", label="group mean" if i == 0 else None)
+    ax.set_xticks(range(len(regl1)), list(regl1))
+    ax.set_xlim(-0.75, len(regl1) - 0.25)
+    ax.set_xlabel("group")
+    ax.set_ylabel(ylabel)
+    ax.set_title("\n".join(textwrap.wrap(title, 48)), fontsize=9)  # a long title would be cut at the edge
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="python -m training compare")
+    p.description = ("Compare groups of evaluated runs (e.g. seeds of one recipe against seeds of another) from their "
+                     "metrics files: the paper's table with mean ± SD per group, every run's row, the RegL1 "
+                     "difference of each group from the first with its Welch standard error, and a plot of every "
+                     "run's RegL1. Writes compare.md, compare.json and compare.png.")
+    p.add_argument("--group", action="append", required=True, metavar="NAME=PATH[,PATH...]",
+                   help="a group of runs: metrics.json files (python -m training evaluate) or report folders holding "
+                        "one; repeat for each group (the first is the reference)")
+    p.add_argument("--frames", type=int, default=FRAME_COUNT, metavar="K",
+                   help="number of observed frames to compare at")
+    p.add_argument("--which", choices=("correct", "all"), default="correct",
+                   help="parameter errors over correctly classified clips (the paper's convention) or all clips")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--title", help="report title (default: the group names and frames)")
+    return p
+
+
+def run(args) -> dict:
+    result = compare(parse_groups(args.group), args.out, args.frames, args.which, args.title)
+    print((Path(args.out) / "compare.md").read_text())
+    print(f"wrote {Path(args.out) / 'compare.md'}, compare.json, compare.png")
+    return result
