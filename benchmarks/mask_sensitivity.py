@@ -1,0 +1,121 @@
+#!/usr/bin/env python3
+"""How visible is an error in each material parameter in the mask video?
+
+For unseen benchmark instances of each family, re-simulates the instance with one parameter
+moved up and down by the bundled model's typical error in it (its unseen log-MAE for E and yield,
+MAE for nu and phi, from default.metrics.json), everything else kept, and reports the PSNR of
+those masks against the instance's own (SPEC 8's re-simulation PSNR). A parameter whose typical
+error leaves the masks almost unchanged (high PSNR) is one that masks say little about, whatever
+the model; one whose error costs many dB is one the model could still learn.
+
+    python benchmarks/mask_sensitivity.py --instances 4              # CPU, a few minutes
+    python benchmarks/mask_sensitivity.py --instances 32 --device cuda --json out.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+for pkg in ("ad_sim", "ad_estimator"):
+    sys.path.insert(0, str(ROOT / "ros_ws" / "src" / pkg))
+
+from ad_estimator.model import BUNDLED_MODEL  # noqa: E402
+from ad_sim.instances import benchmark  # noqa: E402
+from ad_sim.materials import FAMILIES, FAMILY_RANGES, SAMPLED_PARAMETERS  # noqa: E402
+from ad_sim.resimulate import mask_psnr, resimulate  # noqa: E402
+
+
+def model_errors(metrics_path: Path) -> tuple[str, dict[str, dict[str, float]]]:
+    """(model id, {family: {parameter: typical error}}) on unseen shapes, in the metrics' units
+    (log-MAE, MAE; phi in degrees), over correctly classified instances."""
+    metrics = json.loads(metrics_path.read_text())
+    try:
+        families = metrics["evaluation"]["unseen"]["full"]["families"]
+        return metrics["model_id"], {f: {n: float(families[f]["correct"][n]) for n in SAMPLED_PARAMETERS[f]}
+                                     for f in FAMILIES}
+    except KeyError as exc:
+        raise SystemExit(f"{metrics_path} has no unseen evaluation ({exc} missing); pass --metrics with the "
+                         "metrics JSON of an evaluated model") from None
+
+
+def moved(family: str, parameters: dict[str, float], name: str, error: float, sign: int) -> dict[str, float]:
+    """The parameters with `name` moved by `sign` x its typical error, clipped to the family's range."""
+    low, high, scale = FAMILY_RANGES[family][name]
+    value = parameters[name]
+    if scale == "log":
+        value *= math.exp(sign * error)
+    else:
+        value += sign * (math.radians(error) if name == "friction_angle" else error)
+    return {**parameters, name: min(max(value, low), high)}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--instances", type=int, default=4, help="unseen instances per family")
+    p.add_argument("--families", nargs="+", choices=FAMILIES, default=list(FAMILIES), help="families to measure")
+    p.add_argument("--size", default="paper", choices=("tiny", "small", "paper"),
+                   help="benchmark the instances are drawn from")
+    p.add_argument("--metrics", type=Path, default=BUNDLED_MODEL.with_suffix(".metrics.json"),
+                   help="metrics JSON whose unseen errors set the steps")
+    p.add_argument("--device", default="cpu", help="warp device: cpu or cuda")
+    p.add_argument("--seed", type=int, default=0, help="which instances are drawn")
+    p.add_argument("--json", type=Path, help="also write the figures here")
+    args = p.parse_args(argv)
+    if args.instances < 1:
+        p.error("--instances must be at least 1")
+
+    model_id, errors = model_errors(args.metrics)
+    rng = np.random.default_rng(args.seed)
+    pool = benchmark(args.size, "unseen")
+    chosen = []
+    for family in args.families:
+        of_family = [inst for inst in pool if inst.material == family]
+        picks = rng.choice(len(of_family), size=min(args.instances, len(of_family)), replace=False)
+        chosen += [of_family[i] for i in sorted(picks)]
+
+    # One batch: each instance as it is, then each (parameter, direction) move of it.
+    jobs = [(inst, None, 0, inst.parameters) for inst in chosen]
+    for inst in chosen:
+        for name in SAMPLED_PARAMETERS[inst.material]:
+            for sign in (-1, 1):
+                params = moved(inst.material, inst.parameters, name, errors[inst.material][name], sign)
+                if params[name] != inst.parameters[name]:  # at a range edge a move may be clipped away
+                    jobs.append((inst, name, sign, params))
+    print(f"simulating {len(jobs)} episodes ({len(chosen)} instances) on {args.device}", file=sys.stderr)
+    masks = resimulate([j[0] for j in jobs], [(j[0].material, j[3]) for j in jobs], device=args.device,
+                       progress=True)
+    own = {id(inst): masks[i] for i, inst in enumerate(chosen)}
+
+    rows = []
+    for family in args.families:
+        for name in SAMPLED_PARAMETERS[family]:
+            psnr = np.array([mask_psnr(masks[k], own[id(j[0])]) for k, j in enumerate(jobs)
+                             if j[1] == name and j[0].material == family])
+            rows.append({"family": family, "parameter": name, "step": errors[family][name], "n": int(len(psnr)),
+                         "median_db": float(np.median(psnr)), "p10_db": float(np.percentile(psnr, 10)),
+                         "p90_db": float(np.percentile(psnr, 90))})
+    units = {"youngs_modulus": "x e^{:.3f} (log-MAE)", "yield_stress": "x e^{:.3f} (log-MAE)",
+             "poissons_ratio": "± {:.3f} (MAE)", "friction_angle": "± {:.2f}° (MAE)"}
+    print(f"\nMask PSNR against the instance's own masks when one parameter moves by {model_id}'s "
+          f"unseen error ({args.size} unseen, {args.instances} instances per family, both directions):\n")
+    print("| family | parameter | step | PSNR median (dB) | 10th-90th percentile | moves |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['family']} | {r['parameter']} | {units[r['parameter']].format(r['step'])} | "
+              f"{r['median_db']:.1f} | {r['p10_db']:.1f}-{r['p90_db']:.1f} | {r['n']} |")
+    if args.json:
+        setup = {"instances_per_family": args.instances, "size": args.size, "seed": args.seed,
+                 "device": args.device, "model_id": model_id, "episodes": [i.episode_id for i in chosen]}
+        args.json.write_text(json.dumps({"rows": rows, "setup": setup}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
