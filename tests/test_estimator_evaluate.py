@@ -1,13 +1,16 @@
 """`ad_estimator evaluate`: offline metrics over bags (no ROS runtime)."""
 import json
+import math
 import re
 import warnings
+from collections import Counter
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
 
 from ad_estimator import evaluate
+from ad_estimator.metrics import family_ranges
 from ad_estimator.model import EstimatorModel
 from ad_estimator.window import FrameWindow
 from ad_sim import messages
@@ -34,6 +37,53 @@ def test_report_with_temporal_ood_rows(setup, tmp_path, capsys):
     predictions = json.loads((tmp_path / "predictions.json").read_text())["frames"]
     assert [p["true_material"] for p in predictions["25"]] == [m for m, _ in EPISODES]
     assert [p["frames_used"] for p in predictions["18"]] == [18, 18, 18]
+    # Whether the model's sigmas are honest: calibration of the full clip (only), from every raw sigma.
+    # This random-weight model gets no episode's family right, so every family's is null ...
+    assert "calibration" not in metrics["frames"]["18"]
+    assert check_calibration(metrics["frames"]["25"]["calibration"], predictions["25"]) == Counter()
+    assert "## Uncertainty calibration (25 frames)" in (tmp_path / "report.md").read_text()
+    # ... and one with other random weights gets the jelly right: its E and nu have coverages.
+    other = build_streaming_model(tmp_path, name="other", seed=2)
+    assert evaluate.main(["--model", str(other), "--bags", str(bag), "--out", str(tmp_path / "other"), "--quiet"]) == 0
+    calibration = json.loads((tmp_path / "other" / "metrics.json").read_text())["frames"]["25"]["calibration"]
+    episodes = json.loads((tmp_path / "other" / "predictions.json").read_text())["frames"]["25"]
+    assert check_calibration(calibration, episodes) == Counter(jelly=1)
+    assert "| jelly | E | 1 |" in (tmp_path / "other" / "report.md").read_text()
+
+
+def check_calibration(calibration: dict, episodes: list[dict]) -> Counter:
+    """Each family's sampled parameters, counted over its correctly classified episodes (all of which have
+    a sigma), with finite coverages in [0, 1]; null where the family has none. Returns those counts."""
+    assert all(len(e["raw_uncertainties"]) == 4 and all(u > 0 for u in e["raw_uncertainties"]) for e in episodes)
+    correct = Counter(e["true_material"] for e in episodes if e["material"] == e["true_material"])
+    assert {f: set(v) for f, v in calibration.items()} == {f: set(v) for f, v in family_ranges().items()}
+    for family, parameters in calibration.items():
+        for name, c in parameters.items():
+            assert c["n"] == correct[family], (family, name)
+            for key in ("coverage_1sigma", "coverage_2sigma", "error", "median_sigma"):
+                if correct[family]:
+                    assert math.isfinite(c[key]) and (0.0 <= c[key] <= 1.0 or "coverage" not in key), (family, key)
+                else:
+                    assert c[key] is None, (family, name, key)
+    return correct
+
+
+def test_training_evaluate_reports_calibration_too(setup, tmp_path, capsys):
+    """`python -m training evaluate` (the training-side evaluator, on its cached dataset) passes the model's
+    raw sigmas to the metrics as well: per-episode raw_uncertainties and the calibration section."""
+    from training import evaluate as training_evaluate
+    from training.synthetic import write_synthetic_bag
+
+    model, _ = setup
+    bags = tmp_path / "bags" / "unseen"
+    write_synthetic_bag(bags / "unseen-0of1", 6, views=1, seed=12, split="unseen")
+    training_evaluate.evaluate_model(model, bags, tmp_path / "cache", tmp_path / "out", progress=False,
+                                     frames=(25, 18), record=False)
+    saved = json.loads((tmp_path / "out" / "metrics.json").read_text())["frames"]
+    assert "calibration" not in saved["18"]
+    episodes = json.loads((tmp_path / "out" / "predictions.json").read_text())["frames"]["25"]
+    assert check_calibration(saved["25"]["calibration"], episodes), "no episode classified right: nothing checked"
+    assert "## Uncertainty calibration (25 frames)" in (tmp_path / "out" / "report.md").read_text()
 
 
 def test_frames_take_spaces_or_commas(setup, tmp_path, capsys):

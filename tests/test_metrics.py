@@ -6,6 +6,7 @@ import math
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +17,9 @@ from ad_estimator.metrics import (
     evaluate_all,
     family_ranges,
     format_table,
+    json_text,
     regl1,
+    uncertainty_calibration,
     write_report,
 )
 from ad_sim.materials import FAMILIES
@@ -124,8 +127,165 @@ def test_report_json_is_strict_with_null_where_no_clip_qualified(tmp_path):
     assert "n/a" in format_table(results)
 
 
+# --------------------------------------------------------------------------- uncertainty calibration
+
+E, NU, PHI = 0, 1, 3  # columns in PARAMETER_NAMES order
+
+
+def _gaussian_predictions(n: int, sigma_scale: float = 1.0, seed: int = 0) -> Predictions:
+    """n clips per family, all correctly classified. Each prediction is the truth plus a Gaussian error
+    whose one sigma the model reports (times sigma_scale): in log space for E and yield (the SI sigma is
+    pred x the log-space sigma, as the model's delta method gives), in SI for nu and phi."""
+    rng = np.random.default_rng(seed)
+    classes = np.repeat([0, 1, 2], n)
+    true = np.array([JELLY] * n + [PLASTICINE] * n + [SAND] * n)
+    sigma_log = rng.uniform(0.1, 0.8, size=true.shape)  # per clip: a heteroscedastic model
+    sigma_lin = rng.uniform(0.005, 0.05, size=true.shape)
+    noise = rng.standard_normal(true.shape)
+    pred = _fill(true).copy()
+    sigma = np.full(true.shape, np.nan)
+    for j in (0, 2):  # E, yield: log space
+        pred[:, j] = _fill(true)[:, j] * np.exp(sigma_log[:, j] * noise[:, j])
+        sigma[:, j] = pred[:, j] * sigma_log[:, j] * sigma_scale
+    for j in (1, 3):  # nu, phi: linear
+        pred[:, j] = _fill(true)[:, j] + sigma_lin[:, j] * noise[:, j]
+        sigma[:, j] = sigma_lin[:, j] * sigma_scale
+    return Predictions(classes, true, _onehot(classes), pred, pred_sigma=sigma)
+
+
+def test_honest_sigmas_cover_like_a_gaussian_and_small_ones_do_not():
+    calibration = uncertainty_calibration(_gaussian_predictions(4000))
+    assert list(calibration) == list(FAMILIES)
+    for family, parameters in calibration.items():
+        assert list(parameters) == list(family_ranges()[family])  # the family's sampled parameters only
+        for name, c in parameters.items():
+            assert c["n"] == 4000, (family, name)
+            assert c["coverage_1sigma"] == pytest.approx(0.683, abs=0.02), (family, name)
+            assert c["coverage_2sigma"] == pytest.approx(0.954, abs=0.02), (family, name)
+    # Reporting units: E log units (the log-space sigma, median of U(0.1, 0.8) ~ 0.45), phi in degrees.
+    assert calibration["jelly"]["youngs_modulus"]["median_sigma"] == pytest.approx(0.45, abs=0.03)
+    assert calibration["sand"]["friction_angle"]["median_sigma"] == pytest.approx(math.degrees(0.0275), rel=0.05)
+    assert calibration["jelly"]["poissons_ratio"]["median_sigma"] == pytest.approx(0.0275, rel=0.05)
+    # The error is the paper table's: mean |ln pred - ln true| for E, |pred - true| in degrees for phi.
+    pred = _gaussian_predictions(4000)
+    m = compute_metrics(pred)
+    for family, parameters in calibration.items():
+        for name, c in parameters.items():
+            assert c["error"] == pytest.approx(m["families"][family]["correct"][name], rel=1e-12)
+
+    overconfident = uncertainty_calibration(_gaussian_predictions(4000, sigma_scale=1 / 3))
+    for family, parameters in overconfident.items():
+        for name, c in parameters.items():
+            # |z| <= 1 with sigma / 3: |N(0,1)| <= 1/3, 0.26; |z| <= 2: 0.50
+            assert c["coverage_1sigma"] == pytest.approx(0.261, abs=0.03), (family, name)
+            assert c["coverage_2sigma"] == pytest.approx(0.495, abs=0.03), (family, name)
+
+
+def test_log_parameters_are_standardised_in_log_space():
+    """E = 1e5 predicted as 3e5 with an SI sigma of 2.4e5 (a log-space sigma of 2.4e5 / 3e5 = 0.8): the
+    log error ln 3 = 1.10 is outside one sigma (1.37 sigma), where the linear rule would put it inside
+    ((3e5 - 1e5) / 2.4e5 = 0.83). nu stays linear: 0.05 off with sigma 0.04 is outside one sigma."""
+    true = np.array([JELLY])
+    pred_params = _fill(true.copy())
+    pred_params[0, E], pred_params[0, NU] = 3e5, 0.35
+    sigma = np.array([[2.4e5, 0.04, NAN, NAN]])
+    c = uncertainty_calibration(Predictions([0], true, _onehot([0]), pred_params, pred_sigma=sigma))["jelly"]
+    assert c["youngs_modulus"]["coverage_1sigma"] == 0.0 and c["youngs_modulus"]["coverage_2sigma"] == 1.0
+    assert c["youngs_modulus"]["median_sigma"] == pytest.approx(0.8)  # log units: sigma / pred
+    assert c["youngs_modulus"]["error"] == pytest.approx(math.log(3.0))
+    assert c["poissons_ratio"]["coverage_1sigma"] == 0.0 and c["poissons_ratio"]["coverage_2sigma"] == 1.0
+    assert c["poissons_ratio"]["median_sigma"] == pytest.approx(0.04)
+    # And the other way round: 1e5 predicted as 1e5 / 3 with a log sigma of 1.2 >= ln 3 is within one
+    # sigma, where linearly (1e5 - 3.3e4) / 4e4 = 1.67 is not.
+    pred_params[0, E] = 1e5 / 3
+    sigma[0, E] = 1.2 * pred_params[0, E]
+    c = uncertainty_calibration(Predictions([0], true, _onehot([0]), pred_params, pred_sigma=sigma))["jelly"]
+    assert c["youngs_modulus"]["coverage_1sigma"] == 1.0
+
+
+def test_wrong_class_clips_and_clips_without_sigma_are_left_out():
+    true = np.array([JELLY, JELLY, JELLY, SAND])
+    pred_params = _fill(true.copy())
+    pred_params[:3, E] *= math.exp(0.1)  # within one log-space sigma of 0.2 ...
+    pred_params[1, E] = true[1, E] * math.exp(5.0)  # ... except the misclassified clip, far off
+    sigma = np.array([[0.2 * v, 0.01, NAN, NAN] for v in pred_params[:, E]])
+    sigma[2, E] = NAN  # no sigma: left out of E (its nu still counts)
+    pred = Predictions([0, 0, 0, 2], true, _onehot([0, 2, 0, 0]), pred_params, pred_sigma=sigma)
+    c = uncertainty_calibration(pred)
+    assert c["jelly"]["youngs_modulus"] == {"n": 1, "error": pytest.approx(0.1), "median_sigma": pytest.approx(0.2),
+                                            "coverage_1sigma": 1.0, "coverage_2sigma": 1.0}
+    assert c["jelly"]["poissons_ratio"]["n"] == 2
+    # No sand clip classified as sand: n = 0 and NaN, which metrics.json writes as null.
+    assert c["sand"]["friction_angle"]["n"] == 0 and math.isnan(c["sand"]["friction_angle"]["coverage_1sigma"])
+    # A zero or negative sigma is no uncertainty either.
+    sigma[0, E] = 0.0
+    assert uncertainty_calibration(Predictions([0, 0, 0, 2], true, _onehot([0, 2, 0, 0]), pred_params,
+                                               pred_sigma=sigma))["jelly"]["youngs_modulus"]["n"] == 0
+
+
+def test_no_sigma_means_no_calibration():
+    true = np.array([JELLY, SAND])
+    assert uncertainty_calibration(Predictions([0, 2], true, _onehot([0, 2]), _fill(true))) is None
+    all_nan = np.full((2, 4), NAN)  # a model without a log-variance output
+    assert uncertainty_calibration(Predictions([0, 2], true, _onehot([0, 2]), _fill(true), pred_sigma=all_nan)) is None
+    # None in the JSON a predictions.json gives reads as NaN.
+    with_nulls = [[0.1, None, None, None], [None, None, None, 0.02]]
+    pred = Predictions([0, 2], true, _onehot([0, 2]), _fill(true), pred_sigma=with_nulls)
+    assert np.isnan(pred.pred_sigma[0, 1]) and pred.episodes()[1]["raw_uncertainties"][3] == 0.02
+    assert "raw_uncertainties" not in Predictions([0], true[:1], _onehot([0]), _fill(true[:1])).episodes()[0]
+    with pytest.raises(ValueError, match="pred_sigma"):
+        Predictions([0], true[:1], _onehot([0]), _fill(true[:1]), pred_sigma=np.ones((1, 3)))
+
+
+def test_report_has_a_calibration_section_for_the_full_clip_only(tmp_path):
+    by_frames = {25: _gaussian_predictions(50), 18: _gaussian_predictions(50, sigma_scale=0.5, seed=1)}
+    results = write_report(by_frames, tmp_path / "with", "calibrated")
+    text = (tmp_path / "with" / "metrics.json").read_text()
+    saved = json.loads(text, parse_constant=lambda name: pytest.fail(f"non-standard JSON constant {name}"))
+    assert "calibration" in saved["frames"]["25"] and "calibration" not in saved["frames"]["18"]
+    assert saved["frames"]["25"]["calibration"] == json.loads(json_text(results["25"]["calibration"]))
+    assert results["25"]["calibration"] == uncertainty_calibration(by_frames[25])
+    report = (tmp_path / "with" / "report.md").read_text()
+    section = report.index("## Uncertainty calibration (25 frames)")
+    assert section > report.index("**Over all clips of each family**")  # after the two tables
+    header = "| family | parameter | n | error | median sigma | within ±1σ (0.683 if calibrated) | within ±2σ (0.954) |"
+    assert header in report
+    jelly_e = saved["frames"]["25"]["calibration"]["jelly"]["youngs_modulus"]
+    assert (f"| jelly | E | 50 | {jelly_e['error']:.3f} | {jelly_e['median_sigma']:.3f} | "
+            f"{jelly_e['coverage_1sigma']:.3f} | {jelly_e['coverage_2sigma']:.3f} |") in report
+    assert "| sand | phi | 50 |" in report
+    # The older keys are as before; the table ignores the new one.
+    assert set(saved["frames"]["18"]) == {"n", "accuracy", "regl1", "families", "confusion"}
+    assert format_table(results).splitlines()[2].startswith("| 25 |")
+
+    # No sigmas (an older model, or Predictions built without them): no section, no key.
+    plain = {k: Predictions(p.true_class, p.true_params, p.probabilities, p.pred_params) for k, p in by_frames.items()}
+    write_report(plain, tmp_path / "without", "no sigma")
+    assert "calibration" not in json.loads((tmp_path / "without" / "metrics.json").read_text())["frames"]["25"]
+    assert "Uncertainty calibration" not in (tmp_path / "without" / "report.md").read_text()
+
+
 def test_metrics_module_never_imports_torch():
     code = "import sys, ad_estimator.metrics; sys.exit(1 if 'torch' in sys.modules else 0)"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert result.returncode == 0, result.stderr
+
+
+def test_saved_episodes_score_again_as_they_were_scored(tmp_path):
+    """Predictions.from_episodes reads back what episodes() writes, and a real predictions.json of
+    the estimator's runtime (the bundled model on the unseen split) gives its own metrics file."""
+    rng = np.random.default_rng(5)
+    classes = rng.integers(0, 3, 60)
+    true = np.array([(JELLY, PLASTICINE, SAND)[c] for c in classes])
+    pred = Predictions(classes, true, rng.dirichlet(np.ones(3), 60), _fill(true) * rng.uniform(0.8, 1.2, true.shape),
+                       episode_ids=[f"e{i}" for i in range(60)], pred_sigma=_fill(true) * 0.1)
+    again = Predictions.from_episodes(json.loads(json.dumps(pred.episodes())))
+    assert compute_metrics(again) == compute_metrics(pred)
+    assert uncertainty_calibration(again) == uncertainty_calibration(pred)
+    folder = Path(__file__).resolve().parents[1] / "docs" / "results" / "paper" / "streaming_earlier3_reg2_unseen"
+    saved = Predictions.from_episodes(json.loads((folder / "estimator_runtime_predictions.json").read_text())["frames"]["25"])
+    measured = json.loads((folder / "estimator_runtime.json").read_text())["frames"]["25"]
+    scored = compute_metrics(saved)
+    assert scored["confusion"] == measured["confusion"] and scored["regl1"] == pytest.approx(measured["regl1"], abs=1e-12)
+    assert uncertainty_calibration(saved)["jelly"]["youngs_modulus"]["n"] == measured["confusion"][0][0]

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from ad_estimator.metrics import format_table
+from ad_estimator.metrics import Predictions, format_calibration, format_table, uncertainty_calibration
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results" / "paper"
@@ -185,3 +185,16 @@ def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     for label, file in rows_to_files.items():
         assert label in rows, f"experiments {heading!r} lost its row {label!r}"
         assert rows[label] == measured(RESULTS / file), f"experiments {heading!r} row {label!r} differs from {file}"
+
+
+def test_readme_calibration_table_is_the_runtime_checks():
+    """The README's uncertainty-calibration table is what the bundled model's saved runtime
+    predictions give."""
+    folder = RESULTS / SHIPPED_REPORTS.format(split="unseen")
+    saved = json.loads((folder / "estimator_runtime_predictions.json").read_text())
+    assert saved["model_id"] == json.loads((ROOT / "ros_ws" / "src" / "ad_estimator" / "ad_estimator" / "models"
+                                            / "default.metrics.json").read_text())["model_id"]
+    section = format_calibration(uncertainty_calibration(Predictions.from_episodes(saved["frames"]["25"])))
+    expected = [line for line in section.splitlines() if line.startswith("| ") and not line.startswith("| family")]
+    readme = (ROOT / "README.md").read_text().split("### Uncertainty calibration", 1)[1].split("\n### ", 1)[0]
+    assert expected and all(line in readme.splitlines() for line in expected)

@@ -30,6 +30,7 @@ def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORE
     videos = ds.first_view_videos()
     probs = {k: [] for k in frames}
     params = {k: [] for k in frames}
+    sigmas = {k: [] for k in frames}
     for j in tqdm(videos, desc="evaluate", unit="clip", disable=not progress):
         video = list(ds.video(int(j)))  # frames on the model's interval, in order
         features = clip_output([0] * len(video), video, model.encode, model.info.frame_interval,
@@ -38,10 +39,12 @@ def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORE
             est = model.predict(features[:k], np.ones(k, bool))
             probs[k].append(est.probabilities)
             params[k].append(est.raw_parameters)
+            sigmas[k].append(est.raw_uncertainties)  # NaN where the model gives no log-variance
     instances = ds.video_instance[videos]
     ids = [ds.episode_ids[i] for i in instances]
     return {k: Predictions(ds.labels[instances], ds.params_si[instances], np.array(probs[k]).reshape(-1, 3),
-                           np.array(params[k]).reshape(-1, 4), ids) for k in frames}
+                           np.array(params[k]).reshape(-1, 4), ids, pred_sigma=np.array(sigmas[k]).reshape(-1, 4))
+            for k in frames}
 
 
 def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, out: str | Path | None,

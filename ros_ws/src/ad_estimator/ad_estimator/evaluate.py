@@ -45,7 +45,8 @@ class EpisodePrediction:
     probabilities: list[float]
     parameters: list[float]  # for the predicted material, NaN where unused
     raw_parameters: list[float]  # every parameter denormalised (metrics use these for any family)
-    uncertainties: list[float]
+    raw_uncertainties: list[float]  # the model's one sigma of every raw parameter, SI (NaN: the model gives none)
+    uncertainties: list[float]  # for the predicted material (0 for its fixed parameters), NaN where unused
     frames_used: int
     slots: int  # frame slots the estimate covers (frames_used of them filled)
     oldest_stamp_ns: int
@@ -117,7 +118,8 @@ def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed
         true_parameters=dict(zip(instance.parameter_names, (float(v) for v in instance.parameters))),
         material=estimate.material, probabilities=estimate.probabilities.tolist(),
         parameters=estimate.parameters.tolist(), raw_parameters=estimate.raw_parameters.tolist(),
-        uncertainties=estimate.uncertainties.tolist(), frames_used=out.frames_used, slots=len(out.valid),
+        raw_uncertainties=estimate.raw_uncertainties.tolist(), uncertainties=estimate.uncertainties.tolist(),
+        frames_used=out.frames_used, slots=len(out.valid),
         oldest_stamp_ns=out.oldest_stamp_ns, newest_stamp_ns=out.newest_stamp_ns)
 
 
@@ -127,13 +129,14 @@ def to_metrics(predictions: list[EpisodePrediction], parameter_names: tuple[str,
                             for p in predictions])
     # the model's parameter order may differ from the metrics' order: map by name
     order = [parameter_names.index(n) for n in metrics.PARAMETER_NAMES]
+    shape = (len(predictions), len(metrics.PARAMETER_NAMES))
     return metrics.Predictions(
         true_class=[families.index(p.true_material) for p in predictions],
-        true_params=true_params.reshape(len(predictions), len(metrics.PARAMETER_NAMES)),
+        true_params=true_params.reshape(shape),
         probabilities=np.array([p.probabilities for p in predictions]).reshape(len(predictions), -1),
-        pred_params=np.array([[p.raw_parameters[i] for i in order] for p in predictions]).reshape(
-            len(predictions), len(metrics.PARAMETER_NAMES)),
-        episode_ids=[p.episode_id for p in predictions])
+        pred_params=np.array([[p.raw_parameters[i] for i in order] for p in predictions]).reshape(shape),
+        episode_ids=[p.episode_id for p in predictions],
+        pred_sigma=np.array([[p.raw_uncertainties[i] for i in order] for p in predictions], float).reshape(shape))
 
 
 def accepted_frames(bag: Path, instance, frames) -> tuple[list, list[np.ndarray], list[dict]]:

@@ -5,7 +5,8 @@ numpy and matplotlib only: this module must never import torch.
 
 Inputs are a `Predictions` per number of observed frames (25 = the full clip, plus the
 temporal-OOD prefixes 24, 22, 18, 15). Parameters are SI (friction angle in radians);
-reports show the friction angle in degrees.
+reports show the friction angle in degrees. Where the predictions carry the model's one-sigma
+uncertainties, the full-clip metrics also say how well those are calibrated (uncertainty_calibration).
 """
 from __future__ import annotations
 
@@ -62,6 +63,9 @@ class Predictions:
     probabilities: np.ndarray  # (N, 3) class probabilities
     pred_params: np.ndarray  # (N, 4) SI, the parameters the model predicts (used for any family)
     episode_ids: list[str] = field(default_factory=list)
+    # (N, 4) one sigma SI of pred_params (the model's, for every parameter, whatever the family);
+    # NaN where none. None: the model gives no uncertainties (no calibration is reported).
+    pred_sigma: np.ndarray | None = None
 
     def __post_init__(self):
         self.true_class = np.asarray(self.true_class, dtype=np.int64)
@@ -71,6 +75,9 @@ class Predictions:
         n = len(self.true_class)
         expected = {"true_params": (n, len(PARAMETER_NAMES)), "probabilities": (n, len(FAMILIES)),
                     "pred_params": (n, len(PARAMETER_NAMES))}
+        if self.pred_sigma is not None:
+            self.pred_sigma = np.asarray(self.pred_sigma, dtype=np.float64)  # None (JSON null) -> NaN
+            expected["pred_sigma"] = (n, len(PARAMETER_NAMES))
         for name, shape in expected.items():
             if getattr(self, name).shape != shape:
                 raise ValueError(f"Predictions.{name} has shape {getattr(self, name).shape}, expected {shape}")
@@ -82,13 +89,40 @@ class Predictions:
     def episodes(self) -> list[dict]:
         """One JSON-ready record per clip, with the field names of ad_estimator.evaluate's
         predictions.json (parameters in PARAMETER_NAMES order): for per-episode analysis."""
-        return [{"episode_id": self.episode_ids[i] if self.episode_ids else str(i),
-                 "true_material": FAMILIES[self.true_class[i]],
-                 "true_parameters": {n: float(v) for n, v in zip(PARAMETER_NAMES, self.true_params[i])
-                                     if not math.isnan(v)},
-                 "material": FAMILIES[self.pred_class[i]],
-                 "probabilities": self.probabilities[i].tolist(),
-                 "raw_parameters": self.pred_params[i].tolist()} for i in range(len(self))]
+        records = [{"episode_id": self.episode_ids[i] if self.episode_ids else str(i),
+                    "true_material": FAMILIES[self.true_class[i]],
+                    "true_parameters": {n: float(v) for n, v in zip(PARAMETER_NAMES, self.true_params[i])
+                                        if not math.isnan(v)},
+                    "material": FAMILIES[self.pred_class[i]],
+                    "probabilities": self.probabilities[i].tolist(),
+                    "raw_parameters": self.pred_params[i].tolist()} for i in range(len(self))]
+        if self.pred_sigma is not None:
+            for record, sigma in zip(records, self.pred_sigma):
+                record["raw_uncertainties"] = sigma.tolist()
+        return records
+
+    @classmethod
+    def from_episodes(cls, records: list[dict]) -> Predictions:
+        """Back from per-episode records (episodes(), or a predictions.json's list for one K), so
+        that saved predictions can be scored again without the model or the bags. Parameters are
+        read in PARAMETER_NAMES order, the order every exported model's `ad.parameter_names` has.
+        Sigmas come from
+        `raw_uncertainties`, or else from `uncertainties` (the predicted family's own: the same for
+        every correctly classified clip, all that calibration reads)."""
+        def floats(values):
+            return [math.nan if v is None else float(v) for v in values]
+
+        sigma_key = next((k for k in ("raw_uncertainties", "uncertainties") if records and k in records[0]), None)
+        return cls(
+            true_class=[FAMILIES.index(r["true_material"]) for r in records],
+            true_params=np.array([[r["true_parameters"].get(n, math.nan) for n in PARAMETER_NAMES] for r in records],
+                                 float).reshape(len(records), len(PARAMETER_NAMES)),
+            probabilities=np.array([r["probabilities"] for r in records], float).reshape(len(records), len(FAMILIES)),
+            pred_params=np.array([floats(r["raw_parameters"]) for r in records]).reshape(
+                len(records), len(PARAMETER_NAMES)),
+            episode_ids=[r["episode_id"] for r in records],
+            pred_sigma=None if sigma_key is None else np.array([floats(r[sigma_key]) for r in records]).reshape(
+                len(records), len(PARAMETER_NAMES)))
 
     def __len__(self) -> int:
         return len(self.true_class)
@@ -158,9 +192,67 @@ def compute_metrics(pred: Predictions) -> dict:
     }
 
 
+#: Fraction of a Gaussian within one and two sigma: what a calibrated uncertainty's coverage gives.
+GAUSSIAN_COVERAGE = {1: math.erf(1 / math.sqrt(2)), 2: math.erf(2 / math.sqrt(2))}
+
+
+def uncertainty_calibration(pred: Predictions) -> dict | None:
+    """Whether the model's one-sigma uncertainties are honest; None when it gives none.
+
+    Per family and sampled parameter, over the family's correctly classified clips (the paper's
+    convention) whose sigma is finite and positive: the standardised error z = (ln pred - ln true) /
+    (sigma / pred) for the log-MAE parameters (E, yield: the SI sigma of a log-scaled output is
+    pred x its log-space sigma, delta method) and (pred - true) / sigma otherwise; n; coverage_1sigma
+    and coverage_2sigma, the fractions with |z| <= 1 and <= 2 (a calibrated Gaussian: 0.683, 0.954;
+    lower: overconfident, higher: underconfident); median_sigma and error (as the paper table, over
+    the same clips) in the reporting units: log units for E and yield, nu as is, phi in degrees.
+    NaN where n == 0."""
+    if pred.pred_sigma is None or not np.isfinite(pred.pred_sigma).any():
+        return None
+    pred_class = pred.pred_class
+    result = {}
+    for c, (family, ranges) in enumerate(family_ranges().items()):
+        correct = (pred.true_class == c) & (pred_class == c)
+        result[family] = {}
+        for name in ranges:
+            j = PARAMETER_NAMES.index(name)
+            value, true, sigma = pred.pred_params[:, j], pred.true_params[:, j], pred.pred_sigma[:, j]
+            use = correct & np.isfinite(sigma) & (sigma > 0) & np.isfinite(value) & np.isfinite(true)
+            kind = ERROR_KIND[name]
+            if kind == "log_mae":
+                use &= (value > 0) & (true > 0)
+            n = int(use.sum())
+            if n == 0:
+                result[family][name] = {"n": 0, **dict.fromkeys(
+                    ("error", "median_sigma", "coverage_1sigma", "coverage_2sigma"), float("nan"))}
+                continue
+            value, true, sigma = value[use], true[use], sigma[use]
+            if kind == "log_mae":  # log space: the residual in log units, the sigma relative
+                residual, scale = np.log(value) - np.log(true), sigma / value
+            else:
+                residual, scale = value - true, sigma
+            z = np.abs(residual) / scale
+            units = math.degrees(1.0) if kind == "mae_deg" else 1.0
+            result[family][name] = {
+                "n": n,
+                "error": float(np.mean(np.abs(residual)) * units),
+                "median_sigma": float(np.median(scale) * units),
+                "coverage_1sigma": float(np.mean(z <= 1.0)),
+                "coverage_2sigma": float(np.mean(z <= 2.0)),
+            }
+    return result
+
+
 def evaluate_all(by_frames: dict[int, Predictions]) -> dict:
-    """Metrics for every number of observed frames; keys of the result are str(K)."""
-    return {str(k): compute_metrics(p) for k, p in sorted(by_frames.items(), reverse=True)}
+    """Metrics for every number of observed frames; keys of the result are str(K). The full-clip
+    entry (the largest K) also holds "calibration" (uncertainty_calibration) when the predictions
+    carry sigmas; older metrics files lack it, so readers must not rely on it."""
+    results = {str(k): compute_metrics(p) for k, p in sorted(by_frames.items(), reverse=True)}
+    if by_frames:
+        full_k = max(by_frames)
+        if (calibration := uncertainty_calibration(by_frames[full_k])) is not None:
+            results[str(full_k)]["calibration"] = calibration
+    return results
 
 
 def table_columns() -> list[tuple[str, str, str | None]]:
@@ -213,6 +305,27 @@ def format_table(results: dict, title: str = "", which: str = "correct") -> str:
             row.append(table_cell(fam["acc"] if name is None else fam[which][name]))
         row.append(table_cell(m["regl1"]))
         lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def format_calibration(calibration: dict, frames: int = FRAME_COUNT) -> str:
+    """uncertainty_calibration's result (or a metrics.json's "calibration", nulls and all) as a
+    Markdown section."""
+    one, two = (f"{GAUSSIAN_COVERAGE[k]:.3f}" for k in (1, 2))
+    lines = [f"## Uncertainty calibration ({frames} frames)", "",
+             "The model's one-sigma uncertainties against its errors, over correctly classified clips of each "
+             "family: the fraction of clips whose error is within one (two) of their own sigma. Lower than a "
+             "calibrated Gaussian's: the sigmas are too small (overconfident); higher: too large. Error and "
+             "median sigma in the table's units (E, yield: log units, i.e. relative; nu: absolute; "
+             "phi: degrees).", "",
+             f"| family | parameter | n | error | median sigma | within ±1σ ({one} if calibrated) "
+             f"| within ±2σ ({two}) |",
+             "|---|---|---|---|---|---|---|"]
+    for family, parameters in calibration.items():
+        for name, c in parameters.items():
+            lines.append(f"| {family} | {_SHORT.get(name, name)} | {c['n']} | {table_cell(c['error'])} | "
+                         f"{table_cell(c['median_sigma'])} | {table_cell(c['coverage_1sigma'])} | "
+                         f"{table_cell(c['coverage_2sigma'])} |")
     return "\n".join(lines)
 
 
@@ -289,8 +402,10 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
 
     md = [f"# {title}", "", format_table(results, "Paper convention"), "",
           format_table(results, "Over all clips of each family", which="all"), "",
-          f"Clips: {len(full)}; frames per clip: {FRAME_COUNT}.", "",
-          "![confusion](confusion.png)", "", "![predicted vs true](pred_vs_true.png)", "",
-          "![RegL1 vs frames](regl1_vs_frames.png)", ""]
+          f"Clips: {len(full)}; frames per clip: {FRAME_COUNT}.", ""]
+    if (calibration := results[str(full_k)].get("calibration")) is not None:
+        md += [format_calibration(calibration, full_k), ""]
+    md += ["![confusion](confusion.png)", "", "![predicted vs true](pred_vs_true.png)", "",
+           "![RegL1 vs frames](regl1_vs_frames.png)", ""]
     (out / "report.md").write_text("\n".join(md))
     return results
