@@ -32,6 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_ws" / "src" / "ad_sim")]
 
+from ad_estimator.cli import HelpFormatter  # noqa: E402
 from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel  # noqa: E402
 from ad_estimator.window import FrameWindow  # noqa: E402
@@ -166,15 +167,22 @@ def run_ros(args) -> dict:
             "frames": {k: stats[k] for k in ("received", "dropped", "rejected", "published")}}
 
 
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter,
                                      epilog="Target: p50 < 3.83 ms on a 2-core CPU with the streaming student.")
     parser.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: bundled)")
     parser.add_argument("--bag", type=Path, default=None, help="take masks from this bag (default: synthetic)")
     parser.add_argument("--episodes", type=int, default=20, help="episodes of 25 frames")
-    parser.add_argument("--policy", choices=["anytime", "episode"], default="anytime")
-    parser.add_argument("--every-n", type=int, default=1)
-    parser.add_argument("--min-frames", type=int, default=1)
+    parser.add_argument("--policy", choices=["anytime", "episode"], default="anytime",
+                        help="output policy (the node's output_policy; default: anytime, which with the defaults "
+                             "--every-n 1 --min-frames 1 times an estimate at every frame from frame 1, unlike the "
+                             "node's defaults: output_policy episode, every_n 5, min_frames 10); episode times the "
+                             "25th frame only")
+    parser.add_argument("--every-n", type=int, default=1,
+                        help="anytime: an estimate every N more frames (default: 1, every frame; the node's: 5)")
+    parser.add_argument("--min-frames", type=int, default=1,
+                        help="anytime: frames before the first estimate (default: 1, from frame 1; the node's: 10)")
     parser.add_argument("--rate", type=float, default=1.0, help="publishing speed factor (ROS mode)")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
     parser.add_argument("--provider", choices=sorted(PROVIDERS), default="cpu",

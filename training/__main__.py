@@ -25,17 +25,9 @@ def _cache_run(args) -> None:
     print(f"{len(ds)} instances {counts}, {ds.num_videos} videos, {len(ds.shards)} bags cached in {args.cache}")
 
 
-class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Appends "(default: X)" only where there is a default to show and the help text does not
-    already explain it."""
-
-    def _get_help_string(self, action):
-        if action.default in (None, False) or "default" in (action.help or ""):
-            return action.help
-        return super()._get_help_string(action)
-
 
 def main(argv: list[str] | None = None) -> int:
+    from ad_estimator.cli import HelpFormatter
     from ad_sim.rosbag import one_line_warnings
     from training import (baseline, compare, engine, evaluate, export, pipeline, resim_psnr, train_student,
                           train_teacher)
@@ -56,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         "compare": (compare.build_parser, compare.run, "compare groups of evaluated runs (e.g. seeds of two recipes)"),
     }
     for name, (build, _, help_text) in commands.items():
-        build(sub.add_parser(name, help=help_text, formatter_class=_HelpFormatter))
+        build(sub.add_parser(name, help=help_text, formatter_class=HelpFormatter))
     args = parser.parse_args(argv)
     try:
         commands[args.command][1](args)

@@ -116,10 +116,13 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
     p.add_argument("--epochs", type=int, default=epochs, help=f"epochs (default {epochs}; paper values in SPEC 9)")
     p.add_argument("--batch-size", type=int, default=batch_size, help="per-process batch size")
     p.add_argument("--lr", type=float, default=lr, help="AdamW peak learning rate (cosine to --min-lr)")
-    p.add_argument("--min-lr", type=float, default=1e-6)
-    p.add_argument("--weight-decay", type=float, default=1e-4)
+    p.add_argument("--min-lr", type=float, default=1e-6,
+                   help="final learning rate of the cosine schedule (reached at the last step)")
+    p.add_argument("--weight-decay", type=float, default=1e-4, help="AdamW weight decay")
     p.add_argument("--val-fraction", type=float, default=0.1, help="instances held out for validation")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seeds initialisation, the validation split (--val-fraction), batch order, "
+                        "augmentation and the students' random prefixes (default: 0)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda (torchrun: one process per GPU)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch default)")
     p.add_argument("--amp", action="store_true", help="bfloat16 autocast (CUDA only)")

@@ -22,6 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ad_estimator import metrics
+from ad_estimator.cli import HelpFormatter
 from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns
@@ -226,11 +227,18 @@ def check_out(out: Path) -> None:
         raise ValueError(f"--out {out}: cannot write in {base} ({exc.strerror}); pass a writable folder") from exc
 
 
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        prog="ros2 run ad_estimator evaluate",
+        prog="ros2 run ad_estimator evaluate", formatter_class=HelpFormatter,
         description="Run an ONNX student over recorded bags offline (same preprocessing and frame slots as the "
-                    "node) and report the paper's metrics (SPEC 8).")
+                    "node) and report the paper's metrics (SPEC 8). Needs bags recorded from the simulator: "
+                    f"episodes are split at, and scored against, the ground truth on {INSTANCE_TOPIC} "
+                    "(material and parameters); frames before the first such message are skipped, and a bag "
+                    "without any gives no episodes. For your own bags without ground truth, play them with "
+                    "`ros2 run ad_estimator replay BAG` to a running `ros2 run ad_estimator node` (its input "
+                    "remapped with --ros-args -r mask:=TOPIC if needed) and read the estimates on "
+                    "/ad_estimator/estimate.")
     parser.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: the bundled one)")
     parser.add_argument("--bags", type=Path, nargs="+", required=True,
                         help="bag folders, .mcap files, or folders holding bags (searched recursively)")
@@ -238,11 +246,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help=f"also evaluate with only the first K frames observed (temporal OOD), e.g. "
                              f"--frames 24 18 or --frames 24,18; with no value: "
                              f"{' '.join(map(str, metrics.TEMPORAL_OOD_FRAMES))}")
-    parser.add_argument("--topic", default=MASK_TOPIC, help="mask topic to evaluate (one camera)")
+    parser.add_argument("--topic", default=MASK_TOPIC, help="mask topic to evaluate (one camera; sensor_msgs/Image)")
     parser.add_argument("--out", type=Path, default=None,
                         help="report folder (default reports/evaluate/<model id>)")
     parser.add_argument("--title", default=None, help="report title")
-    parser.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
+    parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
     parser.add_argument("--recover", action="store_true",
                         help="read truncated or damaged files (a killed recorder) up to their last complete chunk")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")

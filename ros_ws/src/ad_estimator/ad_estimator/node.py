@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import queue
 import sys
+import textwrap
 import threading
 import time
 from collections import deque
@@ -56,9 +57,15 @@ PARAMETERS = {
     "input_depth": (25, "input QoS history depth (a burst of one episode fits)"),
     "gap_threshold": (DEFAULT_GAP_THRESHOLD, "seconds of stamp gap that start a new episode"),
     "slot_tolerance": (DEFAULT_SLOT_TOLERANCE, "how far (in frame intervals) a frame may be from a slot time to fill it"),
-    "output_policy": ("episode", "'episode': one estimate at the full frame count; 'anytime': every_n"),
-    "every_n": (5, "anytime policy: an estimate every N more frames"),
-    "min_frames": (10, "anytime policy: frames before the first estimate"),
+    "output_policy": ("episode", "'episode': one estimate per episode, when all the model's frame slots (25 for the "
+                                 "bundled model) are settled; a shorter episode gives none; every_n and min_frames "
+                                 "do not apply. 'anytime': the first estimate when min_frames slots are settled, "
+                                 "then one each time every_n more are, always one when the episode is complete, "
+                                 "and one when input stops (idle_flush, or a new episode starts) if slots settled "
+                                 "since the last estimate"),
+    "every_n": (5, "anytime policy only: an estimate every N more frames after the first"),
+    "min_frames": (10, "anytime policy only: frames before the first estimate (capped at the model's frame count). "
+                       "Estimates from fewer than about 15 frames are much less accurate (models/MODEL_CARD.md)"),
     "max_image_pixels": (MAX_IMAGE_PIXELS, "larger images are rejected from their header alone"),
     "mask_threshold": (DEFAULT_THRESHOLD, "pixel > threshold (of 255, scaled for 16 bit) is object"),
     "queue_size": (64, "frames waiting for the worker; more are dropped and counted"),
@@ -365,13 +372,20 @@ class EstimatorNode(Node):
 
 def parse_cli(argv: list[str]) -> None:
     """--help for a node whose knobs are ROS parameters (pass them after --ros-args -p name:=value)."""
-    lines = [f"  {name:20s} {default!r:>12}  {text}" for name, (default, text) in PARAMETERS.items()]
+    lines = [textwrap.fill(text, width=110, initial_indent=f"  {name:20s} {default!r:>12}  ",
+                           subsequent_indent=" " * 37) for name, (default, text) in PARAMETERS.items()]
     parser = argparse.ArgumentParser(
         prog="ros2 run ad_estimator node", formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Online material estimation from one mask stream with an ONNX student "
                     "(publishes ad_msgs/MaterialEstimate on /ad_estimator/estimate).",
         epilog="ROS parameters (--ros-args -p name:=value):\n" + "\n".join(lines)
-        + "\n\nRemap the input with --ros-args -r mask:=/camera/mask. Exit status 1 if the model cannot be loaded.")
+        + f"\n\nTopics:\n  subscribes {DEFAULT_INPUT_TOPIC} (sensor_msgs/Image masks; remap the input with"
+        "\n             --ros-args -r mask:=/camera/mask)"
+        "\n  publishes  /ad_estimator/estimate (ad_msgs/MaterialEstimate), /diagnostics (every diagnostics_period)"
+        "\nServices (~/ under the node name, default ad_estimator):"
+        "\n  /ad_estimator/reset     std_srvs/Trigger: forget the current episode; the next frame starts a new one"
+        "\n  /ad_estimator/estimate  ad_msgs/srv/EstimateMaterial: one estimate for a clip of frames in the request"
+        "\n\nExit status 1 if the model cannot be loaded.")
     parser.parse_args(remove_ros_args(argv)[1:])
 
 

@@ -24,6 +24,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.utilities import remove_ros_args
 from tqdm import tqdm
 
+from ad_estimator.cli import HelpFormatter
 from ad_sim.dds import use_fast_heartbeat
 from ad_sim.rosbag import BagError, BagReader, one_line_warnings
 
@@ -126,9 +127,11 @@ class Replayer:
                    for p in self.publishers.values())
 
 
+
 def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="ros2 run ad_estimator replay",
+        formatter_class=HelpFormatter,
         description="Publish a rosbag2 MCAP bag's topics with their recorded timing and QoS "
                     "(for machines without rosbag2). ROS arguments (remapping) go after --ros-args.")
     parser.add_argument("bag", type=Path, help="bag folder (metadata.yaml + .mcap files) or a single .mcap")
