@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 for pkg in ("ad_sim", "ad_estimator"):
     sys.path.insert(0, str(ROOT / "ros_ws" / "src" / pkg))
 
+from ad_estimator.cli import HelpFormatter  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL  # noqa: E402
 from ad_sim.instances import benchmark  # noqa: E402
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, SAMPLED_PARAMETERS  # noqa: E402
@@ -57,7 +58,7 @@ def moved(family: str, parameters: dict[str, float], name: str, error: float, si
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                formatter_class=HelpFormatter)
     p.add_argument("--instances", type=int, default=4, help="unseen instances per family")
     p.add_argument("--families", nargs="+", choices=FAMILIES, default=list(FAMILIES), help="families to measure")
     p.add_argument("--size", default="paper", choices=("tiny", "small", "paper"),
