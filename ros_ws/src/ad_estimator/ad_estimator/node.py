@@ -64,8 +64,9 @@ PARAMETERS = {
                                  "and one when input stops (idle_flush, or a new episode starts) if slots settled "
                                  "since the last estimate"),
     "every_n": (5, "anytime policy only: an estimate every N more frames after the first"),
-    "min_frames": (10, "anytime policy only: frames before the first estimate (capped at the model's frame count). "
-                       "Estimates from fewer than about 15 frames are much less accurate (models/MODEL_CARD.md)"),
+    "min_frames": (15, "anytime policy only: frames before the first estimate (capped at the model's frame count). "
+                       "From 15 frames on the bundled model is nearly as accurate as from 25; from fewer it is much less "
+                       "(temporal OOD in models/MODEL_CARD.md and the README)"),
     "max_image_pixels": (MAX_IMAGE_PIXELS, "larger images are rejected from their header alone"),
     "mask_threshold": (DEFAULT_THRESHOLD, "pixel > threshold (of 255, scaled for 16 bit) is object"),
     "queue_size": (64, "frames waiting for the worker; more are dropped and counted"),

@@ -94,7 +94,7 @@ class FrameWindow:
     """Online episode window; see the module docstring for the rules."""
 
     def __init__(self, frame_interval: float, frame_count: int, gap_threshold: float = DEFAULT_GAP_THRESHOLD,
-                 slot_tolerance: float = DEFAULT_SLOT_TOLERANCE, policy: str = "episode", every_n: int = 1, min_frames: int = 10,
+                 slot_tolerance: float = DEFAULT_SLOT_TOLERANCE, policy: str = "episode", every_n: int = 1, min_frames: int = 15,
                  *, history: int):
         if policy not in POLICIES:
             raise ValueError(f"output policy must be one of {POLICIES}, got {policy!r}")
