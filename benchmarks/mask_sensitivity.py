@@ -35,14 +35,22 @@ from ad_sim.resimulate import mask_psnr, resimulate  # noqa: E402
 def model_errors(metrics_path: Path) -> tuple[str, dict[str, dict[str, float]]]:
     """(model id, {family: {parameter: typical error}}) on unseen shapes, in the metrics' units
     (log-MAE, MAE; phi in degrees), over correctly classified instances."""
-    metrics = json.loads(metrics_path.read_text())
+    try:
+        metrics = json.loads(metrics_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"{metrics_path} cannot be read as JSON ({exc}); pass --metrics with the metrics JSON of an "
+                         "evaluated model") from None
     try:
         families = metrics["evaluation"]["unseen"]["full"]["families"]
-        return metrics["model_id"], {f: {n: float(families[f]["correct"][n]) for n in SAMPLED_PARAMETERS[f]}
-                                     for f in FAMILIES}
-    except KeyError as exc:
+        errors = {f: {n: families[f]["correct"][n] for n in SAMPLED_PARAMETERS[f]} for f in FAMILIES}
+    except (KeyError, TypeError) as exc:
         raise SystemExit(f"{metrics_path} has no unseen evaluation ({exc} missing); pass --metrics with the "
                          "metrics JSON of an evaluated model") from None
+    if missing := [f"{f} {n}" for f, e in errors.items() for n, v in e.items() if v is None]:
+        raise SystemExit(f"{metrics_path} has no unseen error for {', '.join(missing)} (no correctly classified "
+                         "instance); pass --metrics with another model's metrics")
+    return metrics.get("model_id", metrics_path.name), {f: {n: float(v) for n, v in e.items()}
+                                                         for f, e in errors.items()}
 
 
 def moved(family: str, parameters: dict[str, float], name: str, error: float, sign: int) -> dict[str, float]:
@@ -99,6 +107,10 @@ def main(argv=None) -> int:
         for name in SAMPLED_PARAMETERS[family]:
             psnr = np.array([mask_psnr(masks[k], own[id(j[0])]) for k, j in enumerate(jobs)
                              if j[1] == name and j[0].material == family])
+            if not len(psnr):  # every move clipped away at a range edge
+                rows.append({"family": family, "parameter": name, "step": errors[family][name], "n": 0,
+                             "median_db": None, "p10_db": None, "p90_db": None})
+                continue
             rows.append({"family": family, "parameter": name, "step": errors[family][name], "n": int(len(psnr)),
                          "median_db": float(np.median(psnr)), "p10_db": float(np.percentile(psnr, 10)),
                          "p90_db": float(np.percentile(psnr, 90))})
@@ -109,8 +121,8 @@ def main(argv=None) -> int:
     print("| family | parameter | step | PSNR median (dB) | 10th-90th percentile | moves |")
     print("|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['family']} | {r['parameter']} | {units[r['parameter']].format(r['step'])} | "
-              f"{r['median_db']:.1f} | {r['p10_db']:.1f}-{r['p90_db']:.1f} | {r['n']} |")
+        spread = "n/a | n/a" if not r["n"] else f"{r['median_db']:.1f} | {r['p10_db']:.1f}-{r['p90_db']:.1f}"
+        print(f"| {r['family']} | {r['parameter']} | {units[r['parameter']].format(r['step'])} | {spread} | {r['n']} |")
     if args.json:
         setup = {"instances_per_family": args.instances, "size": args.size, "seed": args.seed,
                  "device": args.device, "model_id": model_id, "episodes": [i.episode_id for i in chosen]}

@@ -135,3 +135,20 @@ def test_registered_as_a_training_subcommand_with_help(capsys):
         main(["compare", "--help"])
     assert exit_info.value.code == 0
     assert "--group NAME=PATH[,PATH...]" in capsys.readouterr().out
+
+
+def test_a_run_without_regl1_and_an_unwritable_out_are_clear(tmp_path, capsys):
+    lacking = _metrics(tmp_path / "lacking.json", 0.15)
+    metrics = json.loads(lacking.read_text())
+    metrics["frames"]["25"]["regl1"] = None
+    lacking.write_text(json.dumps(metrics))
+    out = tmp_path / "out"
+    assert main(["compare", "--group", f"A={_metrics(tmp_path / 'a.json', 0.15)}", "--group", f"B={lacking}",
+                 "--out", str(out)]) == 0
+    assert "mean difference n/a" in (out / "compare.md").read_text()
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")
+    capsys.readouterr()
+    assert main(["compare", "--group", f"A={lacking}", "--out", str(blocked)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert str(blocked) in err and len(err.splitlines()) == 1

@@ -336,3 +336,11 @@ def test_clip_stamps():
     assert clip_stamps([5, 40, 90], 0.025) == [5, 40, 90]
     with pytest.raises(ValueError, match="increasing"):
         clip_stamps([5, 4, 90], 0.025)
+
+
+def test_min_frames_matters_to_the_anytime_policy_only():
+    # A model with fewer frame slots than the anytime default still gets an episode window.
+    assert FrameWindow(0.025, 12, history=0).min_frames == 12
+    with pytest.raises(ValueError, match="min_frames"):
+        FrameWindow(0.025, 12, history=0, policy="anytime")
+    assert FrameWindow(0.025, 12, history=0, policy="anytime", min_frames=12).min_frames == 12

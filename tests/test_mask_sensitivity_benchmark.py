@@ -54,3 +54,21 @@ def test_a_run_on_the_cpu_reports_how_much_a_move_changes_the_masks(tmp_path):
     # A 3.5 degree change of the friction angle moves the sand visibly, but far from every pixel.
     assert 10.0 < row["p10_db"] <= row["median_db"] <= row["p90_db"] < 60.0
     assert "| sand | friction_angle |" in result.stdout
+
+
+@pytest.mark.parametrize("content, expected", [("{", "cannot be read as JSON"), ('{"model_id": "x"}', "no unseen evaluation")])
+def test_a_bad_metrics_file_is_one_clear_line(tmp_path, content, expected):
+    metrics = tmp_path / "m.metrics.json"
+    metrics.write_text(content)
+    result = subprocess.run([sys.executable, str(SCRIPT), "--metrics", str(metrics)], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 1 and expected in result.stderr and "Traceback" not in result.stderr
+
+
+def test_a_missing_error_is_named(tmp_path):
+    metrics = json.loads(mask_sensitivity.BUNDLED_MODEL.with_suffix(".metrics.json").read_text())
+    metrics["evaluation"]["unseen"]["full"]["families"]["jelly"]["correct"]["poissons_ratio"] = None
+    path = tmp_path / "m.metrics.json"
+    path.write_text(json.dumps(metrics))
+    with pytest.raises(SystemExit, match="jelly poissons_ratio"):
+        mask_sensitivity.model_errors(path)

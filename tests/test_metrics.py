@@ -22,7 +22,7 @@ from ad_estimator.metrics import (
     uncertainty_calibration,
     write_report,
 )
-from ad_sim.materials import FAMILIES
+from ad_sim.materials import FAMILIES, PARAMETER_NAMES
 
 NAN = float("nan")
 JELLY = [1e5, 0.3, NAN, NAN]
@@ -280,9 +280,23 @@ def test_saved_episodes_score_again_as_they_were_scored(tmp_path):
     true = np.array([(JELLY, PLASTICINE, SAND)[c] for c in classes])
     pred = Predictions(classes, true, rng.dirichlet(np.ones(3), 60), _fill(true) * rng.uniform(0.8, 1.2, true.shape),
                        episode_ids=[f"e{i}" for i in range(60)], pred_sigma=_fill(true) * 0.1)
-    again = Predictions.from_episodes(json.loads(json.dumps(pred.episodes())))
+    records = json.loads(json_text(pred.episodes()))  # as written to disk: NaN becomes null
+    again = Predictions.from_episodes(records)
     assert compute_metrics(again) == compute_metrics(pred)
     assert uncertainty_calibration(again) == uncertainty_calibration(pred)
+    # Only the predicted family's own sigmas (`uncertainties`, as ad_estimator.evaluate also writes):
+    # calibration reads correctly classified clips only, so it is the same.
+    for record in records:
+        record["uncertainties"] = record.pop("raw_uncertainties")
+    assert uncertainty_calibration(Predictions.from_episodes(records)) == uncertainty_calibration(pred)
+    # A model listing its parameters in another order is mapped by name.
+    names = ("friction_angle", "youngs_modulus", "poissons_ratio", "yield_stress")
+    for record in records:
+        record["raw_parameters"] = [record["raw_parameters"][PARAMETER_NAMES.index(n)] for n in names]
+    assert compute_metrics(Predictions.from_episodes(records, names)) == compute_metrics(pred)
+    # Records without any sigma: no calibration.
+    bare = [{k: v for k, v in r.items() if k != "uncertainties"} for r in records]
+    assert uncertainty_calibration(Predictions.from_episodes(bare, names)) is None
     folder = Path(__file__).resolve().parents[1] / "docs" / "results" / "paper" / "streaming_earlier3_reg2_unseen"
     saved = Predictions.from_episodes(json.loads((folder / "estimator_runtime_predictions.json").read_text())["frames"]["25"])
     measured = json.loads((folder / "estimator_runtime.json").read_text())["frames"]["25"]

@@ -25,7 +25,6 @@ def _cache_run(args) -> None:
     print(f"{len(ds)} instances {counts}, {ds.num_videos} videos, {len(ds.shards)} bags cached in {args.cache}")
 
 
-
 def main(argv: list[str] | None = None) -> int:
     from ad_estimator.cli import HelpFormatter
     from ad_sim.rosbag import one_line_warnings

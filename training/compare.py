@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ad_estimator.metrics import json_text, table_cell, table_columns
+from ad_estimator.metrics import json_text, markdown_table, table_cell, table_labels, table_values
 from ad_sim.materials import FRAME_COUNT
 
 
@@ -57,15 +57,11 @@ def read_run(path: Path, frames: int, which: str) -> tuple[Path, dict[str, float
     if str(frames) not in metrics["frames"]:
         raise ValueError(f"{file} has no entry for {frames} frames (it has {', '.join(metrics['frames'])}); choose "
                          "one of those with --frames")
-    entry = metrics["frames"][str(frames)]
     try:
-        families = entry["families"]
-        values = {label: families[family]["acc"] if name is None else families[family][which][name]
-                  for family, label, name in table_columns()}
-        values["RegL1"] = entry["regl1"]
+        values = table_values(metrics["frames"][str(frames)], which)
     except (KeyError, TypeError) as exc:
         raise ValueError(f"{file}: its {frames}-frame metrics lack {exc}; {hint}") from None
-    return file, {label: math.nan if v is None else float(v) for label, v in values.items()}
+    return file, {label: math.nan if v is None else float(v) for label, v in zip(table_labels(), values)}
 
 
 def _sd(values: np.ndarray) -> float:
@@ -81,14 +77,9 @@ def _spread_cell(values: np.ndarray) -> str:
     return f"{table_cell(mean)} ± {table_cell(_sd(values))}"
 
 
-def _precise(value: float) -> str:
+def _precise(value: float, sign: str = "") -> str:
     """A difference between recipes is often below the table's 3 decimals."""
-    return "n/a" if math.isnan(value) else f"{value:.4f}"
-
-
-def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    return ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|",
-            *("| " + " | ".join(row) + " |" for row in rows)]
+    return "n/a" if math.isnan(value) else f"{value:{sign}.4f}"
 
 
 def compare(groups: dict[str, list[Path]], out: str | Path, frames: int = FRAME_COUNT, which: str = "correct",
@@ -96,7 +87,7 @@ def compare(groups: dict[str, list[Path]], out: str | Path, frames: int = FRAME_
     """Writes compare.md, compare.json and compare.png into `out`; returns what compare.json holds."""
     runs = {name: [read_run(path, frames, which) for path in paths] for name, paths in groups.items()}
     title = title or f"{' vs '.join(groups)} ({frames} frames)"
-    labels = [label for _, label, _ in table_columns()] + ["RegL1"]
+    labels = table_labels()
     arrays = {name: np.array([[v[label] for label in labels] for _, v in rs]) for name, rs in runs.items()}
     regl1 = {name: a[:, -1] for name, a in arrays.items()}
     first = next(iter(groups))
@@ -115,25 +106,30 @@ def compare(groups: dict[str, list[Path]], out: str | Path, frames: int = FRAME_
           f"Metrics at {frames} frames observed; parameter errors over "
           f"{'correctly classified' if which == 'correct' else 'all'} clips of each family (E, yield: log-MAE; "
           "nu: MAE; phi: MAE in degrees). Groups: mean ± sample SD over their runs (n).", "",
-          *_table(["group", *labels, "n"],
-                  [[name, *(_spread_cell(a[:, j]) for j in range(len(labels))), str(len(a))]
-                   for name, a in arrays.items()]),
+          *markdown_table(["group", *labels, "n"],
+                          [[name, *(_spread_cell(a[:, j]) for j in range(len(labels))), str(len(a))]
+                           for name, a in arrays.items()]),
           "", "Every run:", "",
-          *_table(["group", "run", *labels],
-                  [[name, str(Path(f.parent.name) / f.name), *(table_cell(v[label]) for label in labels)]
-                   for name, rs in runs.items() for f, v in rs])]
+          *markdown_table(["group", "run", *labels],
+                          [[name, str(Path(f.parent.name) / f.name), *(table_cell(v[label]) for label in labels)]
+                           for name, rs in runs.items() for f, v in rs])]
     if differences:
         md += ["", f"RegL1 against {first}:", ""]
-        md += [f"- {d['group']}: mean difference {d['regl1_mean_difference']:+.4f} ({d['group']} − {first}), Welch "
-               f"standard error {_precise(d['welch_standard_error'])}; {d['first_runs_below_every_run']} of "
-               f"{d['first_runs']} {first} runs are below every {d['group']} run" for d in differences]
+        md += [f"- {d['group']}: mean difference {_precise(d['regl1_mean_difference'], '+')} "
+               f"({d['group']} − {first}), Welch standard error {_precise(d['welch_standard_error'])}; "
+               f"{d['first_runs_below_every_run']} of {d['first_runs']} {first} runs are below every {d['group']} run"
+               for d in differences]
     md += ["", "![RegL1 of every run](compare.png)", ""]
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "compare.md").write_text("\n".join(md))
-    (out / "compare.json").write_text(json_text(result))
-    plot_regl1(regl1, out / "compare.png", f"RegL1 ({frames} frames)", title)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "compare.md").write_text("\n".join(md))
+        (out / "compare.json").write_text(json_text(result))
+        plot_regl1(regl1, out / "compare.png", f"RegL1 ({frames} frames)", title)
+    except OSError as exc:
+        raise ValueError(f"--out {out}: cannot write the report there ({exc.strerror or exc}); pass a folder you can "
+                         "write to") from None
     return result
 
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ad_estimator.metrics import (PARAMETER_NAMES, TEMPORAL_OOD_FRAMES, FrameCounts, Predictions, format_table, json_text,
-                                  write_report)
+from ad_estimator.metrics import (PARAMETER_NAMES, TEMPORAL_OOD_FRAMES, FrameCounts, Predictions, format_table,
+                                  in_metric_order, json_text, write_report)
 from ad_estimator.model import EstimatorModel
 from ad_estimator.window import clip_output
 from ad_sim.materials import FRAME_COUNT
@@ -42,8 +42,9 @@ def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORE
             sigmas[k].append(est.raw_uncertainties)  # NaN where the model gives no log-variance
     instances = ds.video_instance[videos]
     ids = [ds.episode_ids[i] for i in instances]
+    names = model.info.parameter_names
     return {k: Predictions(ds.labels[instances], ds.params_si[instances], np.array(probs[k]).reshape(-1, 3),
-                           np.array(params[k]).reshape(-1, 4), ids, pred_sigma=np.array(sigmas[k]).reshape(-1, 4))
+                           in_metric_order(params[k], names), ids, pred_sigma=in_metric_order(sigmas[k], names))
             for k in frames}
 
 

@@ -128,16 +128,13 @@ def to_metrics(predictions: list[EpisodePrediction], parameter_names: tuple[str,
     families = list(metrics.FAMILIES)
     true_params = np.array([[p.true_parameters.get(n, np.nan) for n in metrics.PARAMETER_NAMES]
                             for p in predictions])
-    # the model's parameter order may differ from the metrics' order: map by name
-    order = [parameter_names.index(n) for n in metrics.PARAMETER_NAMES]
-    shape = (len(predictions), len(metrics.PARAMETER_NAMES))
     return metrics.Predictions(
         true_class=[families.index(p.true_material) for p in predictions],
-        true_params=true_params.reshape(shape),
+        true_params=true_params.reshape(len(predictions), len(metrics.PARAMETER_NAMES)),
         probabilities=np.array([p.probabilities for p in predictions]).reshape(len(predictions), -1),
-        pred_params=np.array([[p.raw_parameters[i] for i in order] for p in predictions]).reshape(shape),
+        pred_params=metrics.in_metric_order([p.raw_parameters for p in predictions], parameter_names),
         episode_ids=[p.episode_id for p in predictions],
-        pred_sigma=np.array([[p.raw_uncertainties[i] for i in order] for p in predictions], float).reshape(shape))
+        pred_sigma=metrics.in_metric_order([p.raw_uncertainties for p in predictions], parameter_names))
 
 
 def accepted_frames(bag: Path, instance, frames) -> tuple[list, list[np.ndarray], list[dict]]:
@@ -227,7 +224,6 @@ def check_out(out: Path) -> None:
         raise ValueError(f"--out {out}: cannot write in {base} ({exc.strerror}); pass a writable folder") from exc
 
 
-
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="ros2 run ad_estimator evaluate", formatter_class=HelpFormatter,
@@ -288,6 +284,7 @@ def main(argv: list[str] | None = None) -> int:
                 md.write(f"\nInput problems: {problems} (listed in predictions.json).\n")
         (out / "predictions.json").write_text(metrics.json_text(
             {"model_id": model.model_id, "model_path": str(args.model), "topic": args.topic,
+             "parameter_names": list(model.info.parameter_names),
              "frames": {str(k): [vars(p) for p in v] for k, v in results.items()},
              "skipped_frames": evaluation.skipped_frames,
              "left_out": {str(k): v for k, v in evaluation.left_out.items()}}, indent=1))

@@ -102,30 +102,32 @@ class Predictions:
         return records
 
     @classmethod
-    def from_episodes(cls, records: list[dict]) -> Predictions:
+    def from_episodes(cls, records: list[dict], parameter_names=PARAMETER_NAMES) -> Predictions:
         """Back from per-episode records (episodes(), or a predictions.json's list for one K), so
-        that saved predictions can be scored again without the model or the bags. Parameters are
-        read in PARAMETER_NAMES order, the order every exported model's `ad.parameter_names` has.
-        Sigmas come from
-        `raw_uncertainties`, or else from `uncertainties` (the predicted family's own: the same for
-        every correctly classified clip, all that calibration reads)."""
-        def floats(values):
-            return [math.nan if v is None else float(v) for v in values]
-
-        sigma_key = next((k for k in ("raw_uncertainties", "uncertainties") if records and k in records[0]), None)
+        that saved predictions can be scored again without the model or the bags. `raw_*` lists
+        are in `parameter_names` order (a predictions.json says which under "parameter_names").
+        Sigmas come from `raw_uncertainties`, or else from `uncertainties` (the predicted family's
+        own: the same for every correctly classified clip, all that calibration reads)."""
+        sigma_key = next((k for k in ("raw_uncertainties", "uncertainties")
+                          if records and all(k in r for r in records)), None)
         return cls(
             true_class=[FAMILIES.index(r["true_material"]) for r in records],
             true_params=np.array([[r["true_parameters"].get(n, math.nan) for n in PARAMETER_NAMES] for r in records],
                                  float).reshape(len(records), len(PARAMETER_NAMES)),
             probabilities=np.array([r["probabilities"] for r in records], float).reshape(len(records), len(FAMILIES)),
-            pred_params=np.array([floats(r["raw_parameters"]) for r in records]).reshape(
-                len(records), len(PARAMETER_NAMES)),
+            pred_params=in_metric_order([r["raw_parameters"] for r in records], parameter_names),
             episode_ids=[r["episode_id"] for r in records],
-            pred_sigma=None if sigma_key is None else np.array([floats(r[sigma_key]) for r in records]).reshape(
-                len(records), len(PARAMETER_NAMES)))
+            pred_sigma=None if sigma_key is None else in_metric_order([r[sigma_key] for r in records], parameter_names))
 
     def __len__(self) -> int:
         return len(self.true_class)
+
+
+def in_metric_order(rows, parameter_names) -> np.ndarray:
+    """(N, P) values in a model's parameter order (None or NaN where none) -> (N, 4) float in
+    PARAMETER_NAMES order, mapped by name: a model may list its parameters in another order."""
+    order = [list(parameter_names).index(n) for n in PARAMETER_NAMES]
+    return np.array(rows, dtype=np.float64).reshape(-1, len(parameter_names))[:, order]
 
 
 def _normalise(values: np.ndarray, lo: float, hi: float, scale: str) -> np.ndarray:
@@ -286,25 +288,35 @@ def table_cell(value: float | None) -> str:
     return "n/a" if value is None or math.isnan(value) else f"{value:.3f}"
 
 
+def table_labels() -> list[str]:
+    """The paper table's value columns: table_columns()'s labels, then RegL1."""
+    return [label for _, label, _ in table_columns()] + ["RegL1"]
+
+
+def table_values(entry: dict, which: str = "correct") -> list[float | None]:
+    """One metrics entry's (one number of frames) values in table_labels() order; None where a
+    metrics.json read back has null."""
+    families = entry["families"]
+    return [families[family]["acc"] if name is None else families[family][which][name]
+            for family, _, name in table_columns()] + [entry["regl1"]]
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|",
+            *("| " + " | ".join(row) + " |" for row in rows)]
+
+
 def format_table(results: dict, title: str = "", which: str = "correct") -> str:
     """The paper's table layout as Markdown: one row per number of observed frames (the
     full clip first, then the temporal-OOD rows). `which` is "correct" (paper) or "all"."""
-    cols = table_columns()
-    header = ["frames"] + [label for _, label, _ in cols] + ["RegL1"]
     lines = []
     if title:
         lines.append(f"**{title}** (parameter errors over {'correctly classified' if which == 'correct' else 'all'} "
                      "clips of each family; E, yield: log-MAE; nu: MAE; phi: MAE in degrees)")
         lines.append("")
-    lines.append("| " + " | ".join(header) + " |")
-    lines.append("|" + "|".join("---" for _ in header) + "|")
-    for k, m in sorted(results.items(), key=lambda kv: -int(kv[0])):
-        row = [str(k)]
-        for family, _, name in cols:
-            fam = m["families"][family]
-            row.append(table_cell(fam["acc"] if name is None else fam[which][name]))
-        row.append(table_cell(m["regl1"]))
-        lines.append("| " + " | ".join(row) + " |")
+    lines += markdown_table(["frames", *table_labels()],
+                            [[str(k), *map(table_cell, table_values(m, which))]
+                             for k, m in sorted(results.items(), key=lambda kv: -int(kv[0]))])
     return "\n".join(lines)
 
 
@@ -318,14 +330,12 @@ def format_calibration(calibration: dict, frames: int = FRAME_COUNT) -> str:
              "calibrated Gaussian's: the sigmas are too small (overconfident); higher: too large. Error and "
              "median sigma in the table's units (E, yield: log units, i.e. relative; nu: absolute; "
              "phi: degrees).", "",
-             f"| family | parameter | n | error | median sigma | within ±1σ ({one} if calibrated) "
-             f"| within ±2σ ({two}) |",
-             "|---|---|---|---|---|---|---|"]
-    for family, parameters in calibration.items():
-        for name, c in parameters.items():
-            lines.append(f"| {family} | {_SHORT.get(name, name)} | {c['n']} | {table_cell(c['error'])} | "
-                         f"{table_cell(c['median_sigma'])} | {table_cell(c['coverage_1sigma'])} | "
-                         f"{table_cell(c['coverage_2sigma'])} |")
+             *markdown_table(["family", "parameter", "n", "error", "median sigma",
+                              f"within ±1σ ({one} if calibrated)", f"within ±2σ ({two})"],
+                             [[family, _SHORT.get(name, name), str(c["n"]),
+                               *(table_cell(c[key]) for key in ("error", "median_sigma", "coverage_1sigma",
+                                                                "coverage_2sigma"))]
+                              for family, parameters in calibration.items() for name, c in parameters.items()])]
     return "\n".join(lines)
 
 

@@ -127,7 +127,6 @@ class Replayer:
                    for p in self.publishers.values())
 
 
-
 def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="ros2 run ad_estimator replay",
