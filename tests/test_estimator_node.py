@@ -4,6 +4,7 @@ import subprocess
 import sys
 import time
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -364,6 +365,28 @@ def test_clean_shutdown_on_signals(model_paths, sig, ros_domain_id):
     out = "".join(lines) + proc.communicate(timeout=20)[0]
     assert proc.returncode == 0, out
     assert "Traceback" not in out and "shutting down" in out
+
+
+def test_the_installed_example_params_file_configures_the_node(model_paths, ros_domain_id):
+    """config/anytime.yaml, installed to share/ad_estimator/config, is read by the node through
+    --params-file (what ros2 run and launch files pass), and the node says what it applied."""
+    from ament_index_python.packages import get_package_share_directory
+
+    params = Path(get_package_share_directory("ad_estimator")) / "config" / "anytime.yaml"
+    assert params.is_file(), f"{params} is not installed (ros_ws/src/ad_estimator/setup.py data_files)"
+    proc = run_node("--params-file", str(params), "-p", f"model_path:={model_paths['streaming']}",
+                    "-r", "mask:=/estimator_test/params")
+    try:
+        deadline, lines = time.monotonic() + 60, []
+        while time.monotonic() < deadline and not any("model test-streaming" in line for line in lines):
+            lines.append(proc.stdout.readline())
+            if not lines[-1]:
+                break
+        started = next((line for line in lines if "model test-streaming" in line), "")
+        assert "(reliable)" in started and "policy anytime (from 15 frames, every 1)" in started, "".join(lines)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=20)
 
 
 def test_estimator_runtime_never_imports_torch():

@@ -159,10 +159,12 @@ class EstimatorNode(Node):
         self._diag_time = time.monotonic()
         self.worker = threading.Thread(target=self._work, name="ad_estimator_worker", daemon=True)
         self.worker.start()
+        policy = p["output_policy"]
+        if policy == "anytime":
+            policy += f" (from {self.window.min_frames} frames, every {p['every_n']})"
         self.get_logger().info(
             f"model {self.info.model_id} ({self.info.kind}, {self.info.path}); input {self.input_topic} "
-            f"({'reliable' if p['reliable'] else 'best effort'}); policy {p['output_policy']}; "
-            f"output {self.publisher.topic_name}")
+            f"({'reliable' if p['reliable'] else 'best effort'}); policy {policy}; output {self.publisher.topic_name}")
 
     # ------------------------------------------------------------------ set-up
 
