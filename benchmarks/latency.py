@@ -177,8 +177,7 @@ def main(argv=None) -> int:
                         help="output policy (the node's output_policy; default: anytime, which with the defaults "
                              "--every-n 1 --min-frames 1 times an estimate at every frame from frame 1, unlike the "
                              f"node's defaults: output_policy episode, every_n 5, min_frames {DEFAULT_MIN_FRAMES}); "
-                             "episode times the "
-                             "25th frame only")
+                             "episode times the 25th frame only")
     parser.add_argument("--every-n", type=int, default=1,
                         help="anytime: an estimate every N more frames (default: 1, every frame; the node's: 5)")
     parser.add_argument("--min-frames", type=int, default=1,

@@ -138,7 +138,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
                         "wider costs CPU time per frame, see benchmarks/latency.py)")
     p.add_argument("--previous-frames", type=_count, default=0, metavar="N",
                    help="streaming: the frame encoder also sees the N earlier observed frames (early fusion of "
-                        "time; the estimator passes them on); the bundled model: 3 (default: 0)")
+                        "time; the estimator passes them on); the bundled model: 3")
     p.add_argument("--full-clips", action="store_true",
                    help="train on full 25-frame clips only (default: streaming students see random prefixes)")
     return p

@@ -122,7 +122,7 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
     p.add_argument("--val-fraction", type=float, default=0.1, help="instances held out for validation")
     p.add_argument("--seed", type=int, default=0,
                    help="seeds initialisation, the validation split (--val-fraction), batch order, "
-                        "augmentation and the students' random prefixes (default: 0)")
+                        "augmentation and the students' random prefixes")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda (torchrun: one process per GPU)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch default)")
     p.add_argument("--amp", action="store_true", help="bfloat16 autocast (CUDA only)")

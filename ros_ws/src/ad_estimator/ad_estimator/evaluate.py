@@ -125,16 +125,8 @@ def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed
 
 
 def to_metrics(predictions: list[EpisodePrediction], parameter_names: tuple[str, ...]) -> metrics.Predictions:
-    families = list(metrics.FAMILIES)
-    true_params = np.array([[p.true_parameters.get(n, np.nan) for n in metrics.PARAMETER_NAMES]
-                            for p in predictions])
-    return metrics.Predictions(
-        true_class=[families.index(p.true_material) for p in predictions],
-        true_params=true_params.reshape(len(predictions), len(metrics.PARAMETER_NAMES)),
-        probabilities=np.array([p.probabilities for p in predictions]).reshape(len(predictions), -1),
-        pred_params=metrics.in_metric_order([p.raw_parameters for p in predictions], parameter_names),
-        episode_ids=[p.episode_id for p in predictions],
-        pred_sigma=metrics.in_metric_order([p.raw_uncertainties for p in predictions], parameter_names))
+    """The metrics' view of the episodes' predictions (raw_* lists in the model's parameter order)."""
+    return metrics.Predictions.from_episodes([vars(p) for p in predictions], parameter_names)
 
 
 def accepted_frames(bag: Path, instance, frames) -> tuple[list, list[np.ndarray], list[dict]]:
