@@ -39,7 +39,7 @@ def _args(bags, out, cache, **kw):
     base = dict(bags=str(bags), cache=str(cache), out=str(out), size="tiny", epochs=2, batch_size=4, lr=3e-3,
                 min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True,
                 videos_on_device="auto", align_weight=0.1, regl1_weight=0.2, stop_after=0, amp=False,
-                encoder_channels=None, previous_frames=0, teacher=None, select="score")
+                encoder_channels=None, previous_frames=0, teacher=None, select="score", set=None)
     base.update(kw)
     return Namespace(**base)
 
@@ -136,6 +136,23 @@ def test_encoder_channels_override_the_preset(bags, tmp_path):
     with pytest.raises(SystemExit, match="streaming student only"):
         run_student(_args(bags, tmp_path / "u", tmp_path / "cache", kind="uniformer", ablation="none", alpha=0.5,
                           full_clips=False, encoder_channels=(4, 12)))
+
+
+def test_set_overrides_config_fields_and_rejects_bad_ones(bags, tmp_path):
+    best = run_student(_args(bags, tmp_path / "s", tmp_path / "cache", epochs=1, kind="streaming", ablation="none",
+                             alpha=0.5, full_clips=False, set=["dropout=0", "pool=2", "channels=4,8", "moments=false"]))
+    model, meta = load_student(best)
+    config = meta["config"]
+    assert (config["dropout"], config["pool"], config["channels"], config["moments"]) == (0.0, 2, [4, 8], False)
+    assert model.frame_encoder.project[1].in_features == 8 * 2 * 2  # no moments: the pooled map alone
+    assert build_student_parser().parse_args(["--bags", "b", "--out", "o", "--set", "pool=2", "--set", "dropout=0"]
+                                             ).set == ["pool=2", "dropout=0"]
+    for bad, message in (["z_dim=3"], "KEY one of"), (["pool"], "KEY=VALUE"), (["pool=two"], "pool takes a value like 4"), \
+            (["moments=yes"], "moments takes"), (["pool=3"], "multiple of pool=3"):
+        with pytest.raises(SystemExit, match=message):
+            run_student(_args(bags, tmp_path / "bad", tmp_path / "cache", epochs=1, kind="streaming", ablation="none",
+                              alpha=0.5, full_clips=False, set=bad))
+    assert not (tmp_path / "bad").exists(), "a bad --set fails before anything is written"
 
 
 def test_best_checkpoint_is_the_epoch_with_the_lowest_selected_validation_metric(bags, tmp_path):

@@ -14,7 +14,7 @@ from tqdm import tqdm
 from training import data
 from training.engine import BEST, fit, init_runtime, load_checkpoint, main_first, seed_everything
 from training.models.common import align_loss, task_loss
-from training.models.student import FRAME_COUNT, StudentConfig, build_student, student_preset
+from training.models.student import FRAME_COUNT, StudentConfig, build_student, override_config, student_preset
 from training.models.teacher import TEACHER_PRESETS
 from training.train_teacher import add_common_args, fit_config, load_teacher, teacher_targets
 
@@ -139,6 +139,10 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--previous-frames", type=_count, default=0, metavar="N",
                    help="streaming: the frame encoder also sees the N earlier observed frames (early fusion of "
                         "time; the estimator passes them on); the bundled model: 3")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a field of the size preset's model config, repeatable: e.g. --set dropout=0 "
+                        "--set pool=8 (the fields are StudentConfig's in training/models/student.py; saved in the "
+                        "checkpoint, so export and the estimator follow)")
     p.add_argument("--full-clips", action="store_true",
                    help="train on full 25-frame clips only (default: streaming students see random prefixes)")
     return p
@@ -170,9 +174,6 @@ def run(args) -> Path:
     if args.ablation != "none" and not args.teacher:
         raise SystemExit("--teacher is required for --ablation align_only/full (train one with `python -m training "
                          "teacher`), or use --ablation none")
-    ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
-    train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
-
     teacher = load_teacher(args.teacher, rt.device) if args.teacher else None
     z_dim = teacher.config.z_dim if teacher else TEACHER_PRESETS[args.size].z_dim
     config = student_preset(args.kind, args.size, z_dim)
@@ -180,6 +181,13 @@ def run(args) -> Path:
         config = dataclasses.replace(config, channels=args.encoder_channels)
     if args.previous_frames:
         config = dataclasses.replace(config, previous_frames=args.previous_frames)
+    try:
+        config = override_config(config, args.set or [])
+        build_student(config)  # a bad combination (say, a pool the input size cannot give) fails before the data loads
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
+    ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
+    train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
     targets = teacher_targets(teacher, ds, rt.device) if teacher and args.ablation != "none" else None
     frames = main_first(rt, lambda: data.resized_videos(ds, tuple(config.input_size),
                                                           rt.main and not args.no_progress))

@@ -10,7 +10,8 @@ ones. Input is the full 25-frame clip; unobserved frames are zeroed by the valid
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+import dataclasses
+from dataclasses import asdict, dataclass
 
 import torch
 import torch.nn.functional as F
@@ -57,6 +58,30 @@ class StudentConfig:
         if "previous_frame" in d:  # checkpoints before previous_frames: a flag for one previous frame
             d["previous_frames"] = int(d.pop("previous_frame"))
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+def override_config(config: StudentConfig, assignments: list[str]) -> StudentConfig:
+    """Apply KEY=VALUE assignments (`--set` of `python -m training student`) to `config`: each value is
+    read as the type of the field's current value (comma-separated for tuples, true/false for flags)."""
+    fields = {f.name for f in dataclasses.fields(config)} - {"kind", "z_dim"}
+    changes = {}
+    for item in assignments:
+        key, sep, text = item.partition("=")
+        if not sep or key not in fields:
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(fields))}")
+        current = getattr(config, key)
+        try:
+            if isinstance(current, bool):
+                if text.lower() not in ("true", "false"):
+                    raise ValueError
+                changes[key] = text.lower() == "true"
+            elif isinstance(current, tuple):
+                changes[key] = tuple(type(current[0])(v) for v in text.split(","))
+            else:
+                changes[key] = type(current)(text)
+        except ValueError:
+            raise ValueError(f"--set {item!r}: {key} takes a value like {current!r}") from None
+    return dataclasses.replace(config, **changes)
 
 
 def student_preset(kind: str, size: str, z_dim: int) -> StudentConfig:
