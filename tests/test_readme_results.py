@@ -178,8 +178,18 @@ SECTION_8 = {
      for split in ("seen", "unseen") for ablation in ("none", "align_only")}
 
 
+# docs/results/paper/experiments/README.md, section 9: row label -> metrics file
+UNDERFIT_RUNS = {"selreg": "selected on RegL1", "deep6": "6 temporal blocks", "widet": "temporal width 384",
+                 "pool8": "8x8 map, not pooled", "nodrop": "no dropout", "fullclips": "full clips only",
+                 "combo2": "no dropout, 8x8 map", "combo3": "and full clips"}
+SECTION_9 = {
+    f"{split}, `h3reg2`, seed 0 (**shipped**)": f"streaming_earlier3_reg2_{split}/metrics.json" for split in ("seen", "unseen")
+} | {f"{split}, `{run}` ({what})": f"experiments/underfit_check/{run}_{split}.json"
+     for split in ("seen", "unseen") for run, what in UNDERFIT_RUNS.items()}
+
+
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
-                                                   ("## 7. ", SECTION_7), ("## 8. ", SECTION_8)])
+                                                   ("## 7. ", SECTION_7), ("## 8. ", SECTION_8), ("## 9. ", SECTION_9)])
 def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
     for label, file in rows_to_files.items():
