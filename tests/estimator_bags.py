@@ -50,3 +50,12 @@ def write_test_bag(path: Path, episodes=EPISODES, chunk_size: int = 1024 * 1024,
                     continue
                 writer.write(mask_topic, stamp, message)
     return path
+
+
+def damaged(episode, frame, edit):
+    """edit_mask for write_test_bag: `edit` changes frame `frame` of episode `episode` in place."""
+    def edit_mask(index, k, message):
+        if (index, k) == (episode, frame):
+            edit(message)
+        return message
+    return edit_mask

@@ -14,7 +14,7 @@ from ad_estimator.metrics import family_ranges
 from ad_estimator.model import EstimatorModel
 from ad_estimator.window import FrameWindow
 from ad_sim import messages
-from estimator_bags import EPISODES, write_test_bag
+from estimator_bags import EPISODES, damaged, write_test_bag
 from estimator_models import build_streaming_model, falling_masks
 
 
@@ -157,15 +157,6 @@ def test_truncated_recording_needs_recover_and_then_gives_its_complete_episodes(
 
 
 # --------------------------------------------------------------------------- bad input
-
-
-def damaged(episode, frame, edit):
-    """edit_mask for write_test_bag: `edit` changes frame `frame` of episode `episode` in place."""
-    def edit_mask(index, k, message):
-        if (index, k) == (episode, frame):
-            edit(message)
-        return message
-    return edit_mask
 
 
 def run_main(model, bag, out, *extra):

@@ -34,6 +34,7 @@ EXECUTABLES = {
         "node": "ad_estimator.node:main",
         "replay": "ad_estimator.replay:main",
         "evaluate": "ad_estimator.evaluate:main",
+        "estimate": "ad_estimator.estimate:main",
     },
 }
 PACKAGES = ["ad_msgs", *EXECUTABLES]

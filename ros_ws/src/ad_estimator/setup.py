@@ -30,13 +30,14 @@ setup(
     zip_safe=False,
     maintainer="Analytic Dynamics developers",
     maintainer_email="dev@analytic-dynamics.invalid",
-    description="Online material estimation from mask videos with onnxruntime: estimator node, bag replay, offline evaluation.",
+    description="Online material estimation from mask videos with onnxruntime: estimator node, bag replay, offline estimation and evaluation.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
             "node = ad_estimator.node:main",
             "replay = ad_estimator.replay:main",
             "evaluate = ad_estimator.evaluate:main",
+            "estimate = ad_estimator.estimate:main",
         ],
     },
 )

@@ -223,10 +223,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     "node) and report the paper's metrics (SPEC 8). Needs bags recorded from the simulator: "
                     f"episodes are split at, and scored against, the ground truth on {INSTANCE_TOPIC} "
                     "(material and parameters); frames before the first such message are skipped, and a bag "
-                    "without any gives no episodes. For your own bags without ground truth, play them with "
-                    "`ros2 run ad_estimator replay BAG` to a running `ros2 run ad_estimator node` (its input "
-                    "remapped with --ros-args -r mask:=TOPIC if needed) and read the estimates on "
-                    "/ad_estimator/estimate.")
+                    "without any gives no episodes. For your own bags without ground truth, `ros2 run ad_estimator "
+                    "estimate BAG --topic TOPIC` writes the node's estimates as a CSV.")
     parser.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: the bundled one)")
     parser.add_argument("--bags", type=Path, nargs="+", required=True,
                         help="bag folders, .mcap files, or folders holding bags (searched recursively)")

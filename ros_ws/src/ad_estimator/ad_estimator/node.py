@@ -38,8 +38,8 @@ from std_srvs.srv import Trigger
 
 from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
-from ad_estimator.window import (DEFAULT_GAP_THRESHOLD, DEFAULT_MIN_FRAMES, DEFAULT_SLOT_TOLERANCE, FrameWindow,
-                                 WindowOutput, clip_output, ns_to_stamp, stamp_to_ns)
+from ad_estimator.window import (DEFAULT_EVERY_N, DEFAULT_GAP_THRESHOLD, DEFAULT_MIN_FRAMES, DEFAULT_SLOT_TOLERANCE,
+                                 FrameWindow, WindowOutput, clip_output, ns_to_stamp, stamp_to_ns)
 
 DEFAULT_INPUT_TOPIC = "/ad_sim/view_0/mask"
 LOG_THROTTLE_S = 5.0
@@ -63,7 +63,7 @@ PARAMETERS = {
                                  "then one each time every_n more are, always one when the episode is complete, "
                                  "and one when input stops (idle_flush, or a new episode starts) if slots settled "
                                  "since the last estimate"),
-    "every_n": (5, "anytime policy only: an estimate every N more frames after the first"),
+    "every_n": (DEFAULT_EVERY_N, "anytime policy only: an estimate every N more frames after the first"),
     "min_frames": (DEFAULT_MIN_FRAMES, "anytime policy only: frames before the first estimate (capped at the model's "
                                        "frame count). From 15 frames on the bundled model is nearly as accurate as "
                                        "from 25; from fewer it is much less (temporal OOD in models/MODEL_CARD.md "

@@ -49,6 +49,7 @@ DEFAULT_GAP_THRESHOLD = 0.3  # s; episodes in a simulator stream are > 0.5 s apa
 DEFAULT_SLOT_TOLERANCE = 1.0  # frame intervals
 # Anytime policy: the bundled model's unseen RegL1 is 0.161 from 15 frames, 0.226 from 10 (README, temporal OOD).
 DEFAULT_MIN_FRAMES = 15
+DEFAULT_EVERY_N = 5  # anytime policy: then an estimate every 5 frames (0.125 s at 40 fps)
 # Stamps closer than this to a slot time count as at it (float stamps such as 1.5 + 3 * 0.025).
 SETTLE_EPSILON_NS = 1_000
 
