@@ -80,6 +80,24 @@ def test_a_robot_bag_without_ground_truth_gets_estimates_on_its_own_topic(setup,
     assert all(sum(float(r[f"p_{c}"]) for c in ("jelly", "plasticine", "sand")) == pytest.approx(1.0) for r in rows)
 
 
+def test_episodes_are_counted_by_the_window_so_a_looped_recording_keeps_them_apart(setup, tmp_path):
+    """Two loops of the same clip, the second with the first's stamps (a simulator restarted with its
+    clock), then a short episode under the episode policy: it gives no row but is counted."""
+    model, _ = setup
+    masks = falling_masks(seed=7)
+    with BagWriter(tmp_path / "loop") as writer:
+        writer.add_topic(CAMERA, messages.IMAGE_TYPE, [qos_profile(**messages.topic_qos(messages.mask_topic(0)))])
+        log = 0
+        for loop_frames in (25, 25, 10, 25):
+            for k in range(loop_frames):
+                log += 1
+                writer.write(CAMERA, log, messages.mask_message(masks[k], k * 25_000_000, "robot/camera"))
+    assert run(model, tmp_path / "loop", "--topic", CAMERA, "--out", tmp_path / "e.csv") == 0
+    rows = read_csv(tmp_path / "e.csv")
+    assert [(r["episode"], r["episode_start_s"]) for r in rows] == [("1", "0.0"), ("2", "0.0"), ("4", "0.0")]
+    assert rows[0]["p_jelly"] == rows[1]["p_jelly"] == rows[2]["p_jelly"]  # the same frames, the same estimate
+
+
 def test_anytime_policy_and_a_short_episode(setup, tmp_path, capsys):
     model, _ = setup
     bag = robot_bag(tmp_path / "short", episodes=1, frames=17)

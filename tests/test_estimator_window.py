@@ -147,6 +147,7 @@ def test_window_restarts(cause):
     second = [start + k * DT for k in range(25)]
     (out,) = feed(window, second, size)
     assert chosen(out) == second  # the new episode starts at its own first frame
+    assert out.episode == window.episodes == 2  # the first, cut short, gave no estimate but counts
     expected = {"gap": "gap", "backwards": "backwards", "size": "size"}.get(cause)
     if expected:
         assert window.stats.restarts[expected] == 1
@@ -195,7 +196,16 @@ def test_restart_flushes_the_previous_episode():
     stamps = [k * DT - (2_000_000 if k == 24 else 0) for k in range(25)]
     feed(window, stamps)
     outs = feed(window, [stamps[-1] + 10**9])
-    assert len(outs) == 1 and outs[0].complete and outs[0].episode_start_ns == 0
+    assert len(outs) == 1 and outs[0].complete and outs[0].episode_start_ns == 0 and outs[0].episode == 1
+
+
+def test_a_replayed_stream_is_a_new_episode_even_with_the_same_stamps():
+    """A bag played in a loop: its stamps go back to the same start, and the episodes stay apart."""
+    window = FrameWindow(0.025, 25, history=1)
+    stamps = [k * DT for k in range(25)]
+    outs = feed(window, stamps) + feed(window, stamps)
+    assert [(o.episode_start_ns, o.episode) for o in outs] == [(0, 1), (0, 2)]
+    assert window.stats.restarts["backwards"] == 1
 
 
 def test_encode_only_for_frames_that_land_in_slots():

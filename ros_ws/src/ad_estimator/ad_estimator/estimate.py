@@ -36,8 +36,7 @@ class Row:
     """One estimate, as the node would publish it."""
 
     bag: str
-    episode: int  # 1, 2, ... within the bag, in stream order
-    output: WindowOutput
+    output: WindowOutput  # its `episode`: 1, 2, ... in the bag's stream, counting episodes that gave no estimate
     estimate: Estimate
 
 
@@ -80,14 +79,9 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, settings: WindowS
     warned about and counted in `skipped` by reason."""
     window = settings.window(model)
     rows: list[Row] = []
-    starts: list[int] = []  # episode start stamps, in order
 
     def collect(outputs: list[WindowOutput]) -> None:
-        for out in outputs:
-            if out.episode_start_ns not in starts:
-                starts.append(out.episode_start_ns)
-            rows.append(Row(str(bag), starts.index(out.episode_start_ns) + 1, out,
-                            model.predict(out.features, out.valid)))
+        rows.extend(Row(str(bag), out, model.predict(out.features, out.valid)) for out in outputs)
 
     for image in mask_frames(bag, topic, recover):
         stamp = stamp_to_ns(image.header.stamp.sec, image.header.stamp.nanosec)
@@ -117,7 +111,7 @@ def csv_row(row: Row) -> list:
     def cell(v: float):
         return "" if math.isnan(v) else float(v)
 
-    return ([row.bag, row.episode, out.episode_start_ns / 1e9, out.oldest_stamp_ns / 1e9, out.newest_stamp_ns / 1e9,
+    return ([row.bag, out.episode, out.episode_start_ns / 1e9, out.oldest_stamp_ns / 1e9, out.newest_stamp_ns / 1e9,
              out.frames_used, out.complete, est.material] + [float(p) for p in est.probabilities]
             + [cell(v) for v in est.parameters] + [cell(v) for v in est.uncertainties])
 
@@ -126,7 +120,7 @@ def summary_line(row: Row) -> str:
     est = row.estimate
     used = ", ".join(f"{name} {value:.4g}" for name, value in zip(est.parameter_names, est.parameters)
                      if not math.isnan(value))
-    return (f"{Path(row.bag).name} episode {row.episode} ({row.output.frames_used} frames"
+    return (f"{Path(row.bag).name} episode {row.output.episode} ({row.output.frames_used} frames"
             f"{'' if row.output.complete else ', partial'}): {est.material} "
             f"p={est.probabilities.max():.2f}; {used}")
 
@@ -199,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     if not args.quiet:
         print("\n".join(summary_line(r) for r in rows))
-    episodes = len({(r.bag, r.episode) for r in rows})
+    episodes = len({(r.bag, r.output.episode) for r in rows})
     print(f"{len(rows)} estimate(s) of {episodes} episode(s) with {model.model_id}{problems}: {out}")
     return 0
 

@@ -72,6 +72,7 @@ class WindowOutput:
     oldest_stamp_ns: int  # stamp of the frame in the first valid slot
     newest_stamp_ns: int  # stamp of the frame in the last valid slot
     episode_start_ns: int  # t0: stamp of the episode's first frame
+    episode: int  # which episode of the window's stream: 1 for the first one started, 2 for the next, ...
 
     @property
     def frames_used(self) -> int:
@@ -121,6 +122,7 @@ class FrameWindow:
         self.min_frames = min_frames if policy == "anytime" else frame_count
         self.history = history
         self.stats = WindowStats()
+        self.episodes = 0  # episodes started (a restart or reset() ends one; its next frame starts the next)
         self.reset()
 
     def reset(self) -> None:
@@ -166,6 +168,7 @@ class FrameWindow:
             return outputs
         if self._start_ns is None:
             self._start_ns, self._size = stamp_ns, size
+            self.episodes += 1
         self._last_ns = stamp_ns
         if self._done:
             self.stats.ignored += 1
@@ -250,7 +253,7 @@ class FrameWindow:
                 features[k] = slot.feature
                 valid[k] = True
         return WindowOutput(features, valid, n == self.frame_count, used[0].stamp_ns, used[-1].stamp_ns,
-                            self._start_ns)
+                            self._start_ns, self.episodes)
 
 
 def stamp_to_ns(sec: int, nanosec: int) -> int:
