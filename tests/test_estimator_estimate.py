@@ -20,14 +20,16 @@ def setup(tmp_path_factory):
     return build_streaming_model(d, previous_frames=2), write_test_bag(d / "bags" / "sim")
 
 
-def robot_bag(path, episodes: int = 2, frames: int = 25, period_ns: int = 25_000_000):
-    """What a robot records: one mask topic of its own name, no ground truth; episodes 1 s apart."""
+def robot_bag(path, episodes: int = 2, frames: int = 25, period_ns: int = 25_000_000, pause_after: int | None = None):
+    """What a robot records: one mask topic of its own name, no ground truth; episodes 1 s apart.
+    `pause_after` k: the recording pauses 0.8 s (log time) after frame k, the stamps do not."""
     with BagWriter(path) as writer:
         writer.add_topic(CAMERA, messages.IMAGE_TYPE, [qos_profile(**messages.topic_qos(messages.mask_topic(0)))])
         for episode in range(episodes):
             for k, mask in enumerate(falling_masks(count=frames, seed=200 + episode)):
-                stamp = 5_000_000_000 + episode * 1_000_000_000 + k * period_ns
-                writer.write(CAMERA, stamp, messages.mask_message(mask, stamp, "robot/camera"))
+                stamp = 5_000_000_000 + episode * 10_000_000_000 + k * period_ns
+                log = stamp + (800_000_000 if pause_after is not None and k > pause_after else 0)
+                writer.write(CAMERA, log, messages.mask_message(mask, stamp, "robot/camera"))
     return path
 
 
@@ -60,6 +62,8 @@ def test_estimates_of_a_simulator_bag_are_the_evaluators(setup, tmp_path):
             if row[name]:  # (a family's fixed parameters, such as sand's E, have sigma 0)
                 assert float(row[name]) == pytest.approx(value, rel=1e-6)
                 assert float(row[f"{name}_sigma"]) == pytest.approx(sigma, rel=1e-6)
+            else:
+                assert row[f"{name}_sigma"] == ""
         assert float(row["newest_stamp_s"]) == pytest.approx(episode["newest_stamp_ns"] / 1e9)
 
 
@@ -76,8 +80,11 @@ def test_a_robot_bag_without_ground_truth_gets_estimates_on_its_own_topic(setup,
     assert "robot episode 1 (25 frames): " in out and "robot episode 2 (25 frames): " in out
     assert "2 estimate(s) of 2 episode(s) with test-streaming" in out
     rows = read_csv(tmp_path / "r.csv")
-    assert [float(r["episode_start_s"]) for r in rows] == [5.0, 6.0]
-    assert all(sum(float(r[f"p_{c}"]) for c in ("jelly", "plasticine", "sand")) == pytest.approx(1.0) for r in rows)
+    assert [(float(r["episode_start_s"]), float(r["oldest_stamp_s"]), float(r["newest_stamp_s"])) for r in rows] == \
+        [(5.0, 5.0, 5.6), (15.0, 15.0, 15.6)]
+    # Its estimates are the evaluator's on the same frames, once they carry ground truth: checked above on
+    # simulator bags; here the two episodes' different frames give different estimates.
+    assert rows[0]["p_jelly"] != rows[1]["p_jelly"]
 
 
 def test_episodes_are_counted_by_the_window_so_a_looped_recording_keeps_them_apart(setup, tmp_path):
@@ -111,6 +118,52 @@ def test_anytime_policy_and_a_short_episode(setup, tmp_path, capsys):
     rows = read_csv(tmp_path / "any.csv")
     assert [(r["frames_used"], r["complete"]) for r in rows] == [("10", "False"), ("15", "False"), ("20", "False"),
                                                                  ("25", "True")]
+    # The end of the bag flushes the window: the 17-frame episode's last frames give a last estimate.
+    assert run(model, tmp_path / "short", "--topic", CAMERA, "--output-policy", "anytime", "--min-frames", "10",
+               "--out", tmp_path / "short.csv") == 0
+    assert [r["frames_used"] for r in read_csv(tmp_path / "short.csv")] == ["10", "15", "17"]
+    # min_frames is capped at the model's frame count, as in the node.
+    assert run(model, bag, "--topic", CAMERA, "--output-policy", "anytime", "--min-frames", "40",
+               "--out", tmp_path / "cap.csv") == 0
+    assert [r["frames_used"] for r in read_csv(tmp_path / "cap.csv")] == ["25"]
+
+
+def test_a_pause_in_the_recording_flushes_the_window_as_the_nodes_idle_flush_does(setup, tmp_path):
+    """Played at its own rate into the node, a 0.8 s pause after frame 12 leaves the node's input idle
+    past idle_flush (0.3 s), and it flushes: estimates at 10, 13, 18, 23 and 25 frames (what the node
+    published in a review's replay of this bag). Without the pause, or with idle_flush 0: 10, 15, 20, 25."""
+    model, _ = setup
+    bag = robot_bag(tmp_path / "paused", episodes=1, pause_after=12)
+    anytime = ("--topic", CAMERA, "--output-policy", "anytime", "--min-frames", "10", "--every-n", "5")
+    assert run(model, bag, *anytime, "--out", tmp_path / "a.csv") == 0
+    assert [r["frames_used"] for r in read_csv(tmp_path / "a.csv")] == ["10", "13", "18", "23", "25"]
+    assert run(model, bag, *anytime, "--idle-flush", "0", "--out", tmp_path / "b.csv") == 0
+    assert [r["frames_used"] for r in read_csv(tmp_path / "b.csv")] == ["10", "15", "20", "25"]
+    assert run(model, bag, *anytime, "--idle-flush", "1.0", "--out", tmp_path / "c.csv") == 0
+    assert [r["frames_used"] for r in read_csv(tmp_path / "c.csv")] == ["10", "15", "20", "25"]
+
+
+def test_the_nodes_window_and_image_parameters_apply(setup, tmp_path):
+    model, _ = setup
+    bag = robot_bag(tmp_path / "two", episodes=2)  # episodes 10 s apart, frames 25 ms apart
+    # A gap threshold above the 10 s between episodes joins them: one episode, its first 25 slots.
+    assert run(model, bag, "--topic", CAMERA, "--gap-threshold", "20", "--out", tmp_path / "g.csv") == 0
+    assert [(r["episode"], r["newest_stamp_s"]) for r in read_csv(tmp_path / "g.csv")] == [("1", "5.6")]
+    # Masks with object pixels of 100: empty at the default threshold (127), whole at threshold 50.
+    dim = tmp_path / "dim"
+    with BagWriter(dim) as writer:
+        writer.add_topic(CAMERA, messages.IMAGE_TYPE, [qos_profile(**messages.topic_qos(messages.mask_topic(0)))])
+        for k, mask in enumerate(falling_masks(seed=200)):
+            stamp = 5_000_000_000 + k * 25_000_000
+            writer.write(CAMERA, stamp, messages.mask_message((mask // 255 * 100).astype(np.uint8), stamp, "c"))
+    assert run(model, dim, "--topic", CAMERA, "--mask-threshold", "50", "--out", tmp_path / "dim.csv") == 0
+    assert run(model, bag, "--topic", CAMERA, "--out", tmp_path / "full.csv") == 0
+    assert run(model, dim, "--topic", CAMERA, "--out", tmp_path / "empty.csv") == 0
+    same, empty = read_csv(tmp_path / "dim.csv")[0], read_csv(tmp_path / "empty.csv")[0]
+    assert same["p_jelly"] == read_csv(tmp_path / "full.csv")[0]["p_jelly"] != empty["p_jelly"]
+    # Too large for max_image_pixels: every frame is rejected, and the error says none was accepted.
+    with pytest.warns(UserWarning, match="exceeds max_image_pixels"):
+        assert run(model, bag, "--topic", CAMERA, "--max-image-pixels", "100", "--out", tmp_path / "x.csv") == 1
 
 
 def test_a_frame_the_node_rejects_is_skipped_warned_and_counted(setup, tmp_path, capsys):
@@ -130,13 +183,33 @@ def test_a_frame_the_node_rejects_is_skipped_warned_and_counted(setup, tmp_path,
                                truth[1]["probabilities"], rtol=1e-6)
 
 
-def test_clear_errors(setup, tmp_path, capsys):
+def test_a_bag_that_cannot_be_read_is_skipped_and_the_others_kept(setup, tmp_path, capsys):
+    model, good = setup
+    bad = robot_bag(tmp_path / "robot", episodes=1)  # no /ad_sim/view_0/mask
+    with pytest.warns(UserWarning, match=rf"bag skipped: {bad} has no topic /ad_sim/view_0/mask; its image "
+                                         rf"topics: {CAMERA} \(pass one with --topic\)"):
+        assert run(model, good, bad, "--out", tmp_path / "e.csv") == 1
+    assert f"1 bag(s) could not be read: {bad}: {tmp_path / 'e.csv'}" in capsys.readouterr().out
+    assert len(read_csv(tmp_path / "e.csv")) == 3  # the good bag's estimates are written
+    with pytest.warns(UserWarning, match="carries ad_msgs/msg/SimInstance, not sensor_msgs/msg/Image"):
+        assert run(model, good, "--topic", "/ad_sim/instance", "--out", tmp_path / "n.csv") == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "0 frame(s) read, 0 accepted; 1 bag(s) could not be read" in err, err
+    assert "try --output-policy" not in err and not (tmp_path / "n.csv").exists()
+
+
+def test_clear_errors_before_any_work(setup, tmp_path, capsys):
     model, bag = setup
+    (tmp_path / "file").write_text("keep")
     cases = [
-        (["--topic", "/nothing"], f"{bag} has no topic /nothing; its image topics: /ad_sim/view_0/mask"),
-        (["--topic", "/ad_sim/instance"], "carries ad_msgs/msg/SimInstance, not sensor_msgs/msg/Image"),
-        (["--output-policy", "anytime", "--min-frames", "0"], "min_frames"),
+        (["--output-policy", "anytime", "--min-frames", "0"], "min_frames must be positive"),
+        (["--threads", "0"], "threads must be positive"),
+        (["--mask-threshold", "300"], "mask_threshold is a pixel value in 0..254"),
+        (["--idle-flush", "-1"], "idle_flush is seconds >= 0"),
+        (["--gap-threshold", "inf"], "gap_threshold must be a finite number of seconds"),
+        (["--slot-tolerance", "3"], "slot_tolerance"),
         (["--out", tmp_path], "is a folder; pass a .csv file name"),
+        (["--out", tmp_path / "file" / "e.csv"], "file is not a folder"),
     ]
     for extra, message in cases:
         assert run(model, bag, *extra) == 1

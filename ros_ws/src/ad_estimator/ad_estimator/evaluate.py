@@ -88,13 +88,18 @@ def find_bags(paths: list[Path]) -> list[Path]:
     return bags
 
 
+def check_image_topic(topics: dict[str, str], topic: str, bag: Path) -> None:
+    """BagError if the bag's `topic` (from BagReader.topics()) carries something other than Image."""
+    if (carried := topics.get(topic, IMAGE_TYPE)) != IMAGE_TYPE:
+        raise BagError(f"topic {topic} in {bag} carries {carried}, not {IMAGE_TYPE}; pass a mask topic "
+                       "with --topic (e.g. /ad_sim/view_0/mask)")
+
+
 def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = False):
     """(instance, [(stamp_ns, Image)]) per episode of the bag, in order. `recover`: read a truncated
     or damaged file (a killed recorder) up to its last complete chunk, with a warning."""
     reader = BagReader(bag, topics=[INSTANCE_TOPIC, mask_topic], recover=recover)
-    if (carried := reader.topics().get(mask_topic, IMAGE_TYPE)) != IMAGE_TYPE:
-        raise BagError(f"topic {mask_topic} in {bag} carries {carried}, not {IMAGE_TYPE}; pass a mask topic "
-                       "with --topic (e.g. /ad_sim/view_0/mask)")
+    check_image_topic(reader.topics(), mask_topic, bag)
     for episode in group_episodes(reader, INSTANCE_TOPIC):
         frames = [(stamp_to_ns(m.header.stamp.sec, m.header.stamp.nanosec), m)
                   for _, m in episode.messages.get(mask_topic, [])]

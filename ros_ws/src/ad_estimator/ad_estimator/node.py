@@ -36,10 +36,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
-from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, ImageRejected, check_header, image_to_mask
+from ad_estimator.images import ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
-from ad_estimator.window import (DEFAULT_EVERY_N, DEFAULT_GAP_THRESHOLD, DEFAULT_MIN_FRAMES, DEFAULT_SLOT_TOLERANCE,
-                                 FrameWindow, WindowOutput, clip_output, ns_to_stamp, stamp_to_ns)
+from ad_estimator.parameters import PARAMETERS, check_parameters, model_window
+from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
 
 DEFAULT_INPUT_TOPIC = "/ad_sim/view_0/mask"
 LOG_THROTTLE_S = 5.0
@@ -48,32 +48,6 @@ MAX_CLIP_FRAMES = 1000
 # interval the inference worker can wait that long for a frame just queued (measured: p95
 # arrival->publish 4.2 ms at 5 ms, 1.6 ms at 0.5 ms, with a 0.3 ms model).
 GIL_SWITCH_INTERVAL_S = 0.0005
-# name -> (default, description); every knob is a ROS parameter.
-PARAMETERS = {
-    "model_path": ("", "ONNX model (temporal head for streaming models); empty: the bundled default"),
-    "threads": (1, "onnxruntime intra-op threads (1 keeps latency low on a 2-core robot CPU)"),
-    "execution_provider": ("cpu", "onnxruntime execution provider: cpu, or cuda (needs onnxruntime-gpu)"),
-    "reliable": (False, "input QoS: reliable instead of sensor-data best effort"),
-    "input_depth": (25, "input QoS history depth (a burst of one episode fits)"),
-    "gap_threshold": (DEFAULT_GAP_THRESHOLD, "seconds of stamp gap that start a new episode"),
-    "slot_tolerance": (DEFAULT_SLOT_TOLERANCE, "how far (in frame intervals) a frame may be from a slot time to fill it"),
-    "output_policy": ("episode", "'episode': one estimate per episode, when all the model's frame slots (25 for the "
-                                 "bundled model) are settled; a shorter episode gives none; every_n and min_frames "
-                                 "do not apply. 'anytime': the first estimate when min_frames slots are settled, "
-                                 "then one each time every_n more are, always one when the episode is complete, "
-                                 "and one when input stops (idle_flush, or a new episode starts) if slots settled "
-                                 "since the last estimate"),
-    "every_n": (DEFAULT_EVERY_N, "anytime policy only: an estimate every N more frames after the first"),
-    "min_frames": (DEFAULT_MIN_FRAMES, "anytime policy only: frames before the first estimate (capped at the model's "
-                                       "frame count). From 15 frames on the bundled model is nearly as accurate as "
-                                       "from 25; from fewer it is much less (temporal OOD in models/MODEL_CARD.md "
-                                       "and the README)"),
-    "max_image_pixels": (MAX_IMAGE_PIXELS, "larger images are rejected from their header alone"),
-    "mask_threshold": (DEFAULT_THRESHOLD, "pixel > threshold (of 255, scaled for 16 bit) is object"),
-    "queue_size": (64, "frames waiting for the worker; more are dropped and counted"),
-    "idle_flush": (0.3, "seconds without input after which pending slots settle (0: never)"),
-    "diagnostics_period": (1.0, "seconds between /diagnostics messages"),
-}
 
 
 def to_time(ns: int) -> Time:
@@ -126,10 +100,7 @@ class EstimatorNode(Node):
                                          provider=p["execution_provider"])
         self.info = self.model.info
         self.slot_tolerance = p["slot_tolerance"]
-        self.window = FrameWindow(self.info.frame_interval, self.info.frame_count, gap_threshold=p["gap_threshold"],
-                                  slot_tolerance=self.slot_tolerance, policy=p["output_policy"],
-                                  every_n=p["every_n"], min_frames=min(p["min_frames"], self.info.frame_count),
-                                  history=self.info.previous_frames)
+        self.window = model_window(p, self.info)
         self.max_pixels = p["max_image_pixels"]
         self.threshold = p["mask_threshold"]
         self.idle_flush = p["idle_flush"]
@@ -172,8 +143,7 @@ class EstimatorNode(Node):
         values = {}
         for name, (default, description) in PARAMETERS.items():
             values[name] = self.declare_parameter(name, default, ParameterDescriptor(description=description)).value
-        if values["queue_size"] < 1 or values["threads"] < 1 or values["max_image_pixels"] < 1:
-            raise ValueError("queue_size, threads and max_image_pixels must be positive")
+        check_parameters(values)
         return values
 
     def _input_topic(self) -> str:

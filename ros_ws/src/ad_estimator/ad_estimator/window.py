@@ -112,6 +112,8 @@ class FrameWindow:
         if not 0 < slot_tolerance <= 2:
             raise ValueError("slot_tolerance is a fraction of the frame interval in (0, 2]")
         self.interval_ns = int(round(frame_interval * 1e9))
+        if not math.isfinite(gap_threshold):
+            raise ValueError(f"gap_threshold must be a finite number of seconds, got {gap_threshold}")
         if not gap_threshold * 1e9 > self.interval_ns * slot_tolerance:
             raise ValueError("gap_threshold must exceed slot_tolerance * frame_interval")
         self.frame_count = frame_count
