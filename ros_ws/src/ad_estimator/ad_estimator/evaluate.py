@@ -25,11 +25,12 @@ from ad_estimator import metrics
 from ad_estimator.cli import HelpFormatter
 from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
+from ad_estimator.parameters import DEFAULT_INPUT_TOPIC
 from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns
 from ad_sim.rosbag import BagError, BagReader, group_episodes, one_line_warnings
 
 INSTANCE_TOPIC = "/ad_sim/instance"
-MASK_TOPIC = "/ad_sim/view_0/mask"
+MASK_TOPIC = DEFAULT_INPUT_TOPIC  # the node's input: the simulator's first camera
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 
 

@@ -38,10 +38,9 @@ from std_srvs.srv import Trigger
 
 from ad_estimator.images import ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
-from ad_estimator.parameters import PARAMETERS, check_parameters, model_window
+from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
 from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
 
-DEFAULT_INPUT_TOPIC = "/ad_sim/view_0/mask"
 LOG_THROTTLE_S = 5.0
 MAX_CLIP_FRAMES = 1000
 # The executor thread runs much Python between callbacks; with the default 5 ms GIL switch

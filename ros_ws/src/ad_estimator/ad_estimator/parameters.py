@@ -7,6 +7,7 @@ from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS
 from ad_estimator.window import (DEFAULT_EVERY_N, DEFAULT_GAP_THRESHOLD, DEFAULT_MIN_FRAMES, DEFAULT_SLOT_TOLERANCE,
                                  FrameWindow)
 
+DEFAULT_INPUT_TOPIC = "/ad_sim/view_0/mask"  # the simulator's first camera: what the node reads unless remapped
 DEFAULT_IDLE_FLUSH = 0.3  # s; replayed and simulated streams pause > 0.5 s between episodes, frames 0.025 s apart
 # name -> (default, description); every knob of the node is a ROS parameter.
 PARAMETERS = {
