@@ -183,7 +183,9 @@ def run(args) -> Path:
         config = dataclasses.replace(config, previous_frames=args.previous_frames)
     try:
         config = override_config(config, args.set or [])
-        build_student(config)  # a bad combination (say, a pool the input size cannot give) fails before the data loads
+        # Built once, before the data loads, so a bad combination (say, a pool the input size cannot
+        # give) fails early; loading the data draws no torch random numbers, so the init is as before.
+        model = build_student(config)
     except ValueError as e:
         raise SystemExit(str(e)) from None
     ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
@@ -192,7 +194,6 @@ def run(args) -> Path:
     frames = main_first(rt, lambda: data.resized_videos(ds, tuple(config.input_size),
                                                           rt.main and not args.no_progress))
 
-    model = build_student(config)
     if teacher is not None and args.ablation != "none":
         model.heads.predictor.load_state_dict(teacher.heads.predictor.state_dict())
         if args.ablation == "align_only":

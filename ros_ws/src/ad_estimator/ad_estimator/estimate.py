@@ -24,10 +24,10 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ad_estimator.cli import HelpFormatter
-from ad_estimator.evaluate import IMAGE_TYPE, MASK_TOPIC, check_image_topic, check_out, find_bags
+from ad_estimator.evaluate import IMAGE_TYPE, check_image_topic, check_out, find_bags
 from ad_estimator.images import ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
-from ad_estimator.parameters import PARAMETERS, check_parameters, model_window
+from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
 from ad_estimator.window import POLICIES, WindowOutput, stamp_to_ns
 from ad_sim.rosbag import BagError, BagReader, one_line_warnings
 
@@ -129,7 +129,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     "if there is no estimate or a bag could not be read (the CSV still holds the others').")
     parser.add_argument("bags", type=Path, nargs="+",
                         help="bag folders, .mcap files, or folders holding bags (searched recursively)")
-    parser.add_argument("--topic", default=MASK_TOPIC,
+    parser.add_argument("--topic", default=DEFAULT_INPUT_TOPIC,
                         help="mask topic (sensor_msgs/Image: mono8, mono16, or colour, as the node takes them)")
     parser.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: the bundled one)")
     parser.add_argument("--out", type=Path, default=None,
