@@ -19,7 +19,7 @@ from training.models.student import (StudentConfig, build_student, earlier_obser
                                      student_preset)
 from training.models.teacher import TEACHER_PRESETS, Teacher, farthest_point_sampling, strain_features
 from training.synthetic import write_synthetic_bag
-from training.train_student import ABLATIONS, VideoSet, load_student, student_loss, videos_on_device
+from training.train_student import ABLATIONS, VideoSet, build_parser, load_student, reframe, student_loss, videos_on_device
 from training.train_student import build_parser as build_student_parser
 from training.train_student import run as run_student
 from training.train_teacher import SYMMETRIES, transform_trajectory
@@ -39,7 +39,7 @@ def _args(bags, out, cache, **kw):
     base = dict(bags=str(bags), cache=str(cache), out=str(out), size="tiny", epochs=2, batch_size=4, lr=3e-3,
                 min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True,
                 videos_on_device="auto", align_weight=0.1, regl1_weight=0.2, stop_after=0, amp=False,
-                encoder_channels=None, previous_frames=0, teacher=None, select="score", set=None)
+                encoder_channels=None, previous_frames=0, teacher=None, select="score", set=None, shift=0, zoom=0.0)
     base.update(kw)
     return Namespace(**base)
 
@@ -236,6 +236,55 @@ def test_batches_built_on_device_match_host_batches(bags, tmp_path):
             torch.testing.assert_close(a[key], b[key], rtol=0, atol=1e-3 if key == "masks" else 0)
     # Prefixes and mirror flips really happen (so the comparison above covers them).
     assert (a["valid"].sum(1) < 25).any() and not torch.equal(a["masks"], a["masks"].flip(-1))
+
+
+def test_reframed_batches_match_on_device_and_are_reproducible(bags, tmp_path):
+    """Shift and zoom augmentation: the same clips on both paths, the same again from the seed, and
+    really reframed (the masks differ from the unaugmented batch's, but take no value it lacks)."""
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    frames = data.resized_videos(ds, (32, 32), progress=False)
+    on_device = videos_on_device(frames, torch.device("cpu"), progress=False)
+    videos = np.arange(ds.num_videos)
+
+    def batch(**kw):
+        vs = VideoSet(ds, videos, frames, None, random_prefix=True, augment=True, seed=3, **kw)
+        return vs.collate([vs[k] for k in range(len(videos))])
+
+    plain, host = batch(), batch(shift=3, zoom=0.1)
+    device = batch(shift=3, zoom=0.1, on_device=on_device)
+    assert "view" not in plain and host.keys() == plain.keys() == device.keys()
+    torch.testing.assert_close(host["masks"], device["masks"], rtol=0, atol=1e-3)
+    torch.testing.assert_close(host["masks"], batch(shift=3, zoom=0.1)["masks"], rtol=0, atol=0)
+    assert torch.equal(host["valid"], plain["valid"])  # the prefixes and flips are drawn as before
+    assert not torch.equal(host["masks"], plain["masks"])
+    assert set(host["masks"].unique().tolist()) <= set(plain["masks"].unique().tolist())  # nearest: no new values
+
+
+def test_reframe_shifts_and_zooms_about_the_centre():
+    masks = torch.zeros(2, 3, 16, 16)
+    masks[:, :, 6:10, 5:9] = 1.0  # a 4x4 square, centred in y (rows 6..9), one pixel left of centre in x
+    same = reframe(masks, torch.tensor([[1.0, 0, 0], [1.0, 0, 0]]))
+    assert torch.equal(same, masks)
+    shifted = reframe(masks, torch.tensor([[1.0, 2, -1], [1.0, -7, 0]]))
+    expected = torch.zeros_like(masks)
+    expected[0, :, 5:9, 7:11] = 1.0  # 2 px right, 1 px up
+    expected[1, :, 6:10, 0:2] = 1.0  # 7 px left: the left half falls outside the image
+    assert torch.equal(shifted, expected)
+    zoomed = reframe(masks, torch.tensor([[2.0, 0, 0], [2.0, 0, 0]]))
+    assert zoomed[0].sum(dim=(1, 2)).tolist() == [64.0] * 3  # twice the side, four times the area
+    assert zoomed[0, 0].any(1).nonzero().flatten().tolist() == list(range(4, 12))  # still centred in y
+    centred = torch.zeros(1, 1, 16, 16)
+    centred[..., 4:12, 4:12] = 1.0
+    expected = torch.zeros_like(centred)
+    expected[..., 6:10, 6:10] = 1.0
+    assert torch.equal(reframe(centred, torch.tensor([[0.5, 0, 0]])), expected)
+
+
+@pytest.mark.parametrize("option", [["--zoom", "1.0"], ["--zoom", "-0.1"], ["--zoom", "x"], ["--shift", "-2"]])
+def test_augmentation_options_are_checked(option, capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--bags", "b", "--out", "o", *option])
+    assert "expected" in capsys.readouterr().err
 
 
 def test_native_size_videos_are_not_copied(bags, tmp_path):

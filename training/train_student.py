@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch.utils.data import Dataset as TorchDataset
 from torch.utils.data import default_collate
 from tqdm import tqdm
@@ -30,13 +31,18 @@ class VideoSet(TorchDataset):
 
     With `on_device` (a tensor of every video, from `videos_on_device`) items carry only the video's
     row, prefix length and mirror flag, and `collate` assembles the masks on that device: the
-    same batches as the host path, without a host-to-device copy of every clip."""
+    same batches as the host path, without a host-to-device copy of every clip.
+
+    With `augment`, clips are mirrored at random and, where `shift` (pixels) or `zoom` (a fraction)
+    is set, reframed as a slightly different camera would see them (`reframe`): more views of each
+    instance than the 4 rendered ones."""
 
     def __init__(self, ds: data.Dataset, videos: np.ndarray, frames: list[np.ndarray], targets: np.ndarray | None,
-                 random_prefix: bool, augment: bool, seed: int, on_device: torch.Tensor | None = None):
+                 random_prefix: bool, augment: bool, seed: int, on_device: torch.Tensor | None = None,
+                 shift: int = 0, zoom: float = 0.0):
         self.ds, self.videos, self.frames, self.targets = ds, videos, frames, targets
         self.random_prefix, self.augment, self.seed, self.epoch = random_prefix, augment, seed, 0
-        self.on_device = on_device
+        self.on_device, self.shift, self.zoom = on_device, shift, zoom
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
@@ -55,6 +61,9 @@ class VideoSet(TorchDataset):
                 "mask": torch.from_numpy(self.ds.param_mask[i])}
         if self.targets is not None:
             item["z_t"] = torch.from_numpy(self.targets[i])
+        if self.augment and (self.shift or self.zoom):  # drawn after the flip: runs without them are unchanged
+            dx, dy = rng.integers(-self.shift, self.shift + 1, size=2)
+            item["view"] = torch.tensor([rng.uniform(1 - self.zoom, 1 + self.zoom), dx, dy], dtype=torch.float32)
         if self.on_device is not None:
             item.update(row=torch.tensor(j), flip=torch.tensor(flip))
             return item
@@ -68,15 +77,32 @@ class VideoSet(TorchDataset):
 
     def collate(self, items: list[dict]) -> dict:
         batch = default_collate(items)
-        if self.on_device is None:
-            return batch
-        rows, flip = batch.pop("row").to(self.on_device.device), batch.pop("flip").to(self.on_device.device)
-        masks = self.on_device[rows].float()
-        if self.on_device.dtype == torch.uint8:
-            masks = masks * (1.0 / 255.0)
-        masks = torch.where(flip[:, None, None, None], masks.flip(-1), masks)
-        batch["masks"] = masks * batch["valid"].to(masks.device)[:, :, None, None]
+        if self.on_device is not None:
+            rows, flip = batch.pop("row").to(self.on_device.device), batch.pop("flip").to(self.on_device.device)
+            masks = self.on_device[rows].float()
+            if self.on_device.dtype == torch.uint8:
+                masks = masks * (1.0 / 255.0)
+            masks = torch.where(flip[:, None, None, None], masks.flip(-1), masks)
+            batch["masks"] = masks * batch["valid"].to(masks.device)[:, :, None, None]
+        if "view" in batch:
+            batch["masks"] = reframe(batch["masks"], batch.pop("view"))
         return batch
+
+
+def reframe(masks: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+    """Clips (B, T, H, W) as seen by a camera zoomed by view[:, 0] about the image centre and shifted by
+    view[:, 1:] = (dx, dy) pixels: the same transform for every frame of a clip, nearest-neighbour so
+    that masks stay binary, empty outside the original image. Zoom stands for another camera distance
+    (the rendered ones span 1.5 to 2.0 m) and a shift for another aim (up to a few pixels)."""
+    b, _, h, w = masks.shape
+    zoom, dx, dy = view.to(masks.device, torch.float32).unbind(1)
+    # affine_grid maps output to input coordinates, normalised to [-1, 1] (align_corners=False).
+    theta = torch.zeros(b, 2, 3, device=masks.device)
+    theta[:, 0, 0] = theta[:, 1, 1] = 1.0 / zoom
+    theta[:, 0, 2] = -2.0 * dx / (w * zoom)
+    theta[:, 1, 2] = -2.0 * dy / (h * zoom)
+    grid = F.affine_grid(theta, list(masks.shape), align_corners=False)
+    return F.grid_sample(masks, grid.to(masks.dtype), mode="nearest", padding_mode="zeros", align_corners=False)
 
 
 def videos_on_device(frames: list[np.ndarray], device: torch.device, progress: bool) -> torch.Tensor:
@@ -143,6 +169,11 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
                    help="override a field of the size preset's model config, repeatable: e.g. --set dropout=0 "
                         "--set pool=8 (the fields are StudentConfig's in training/models/student.py; saved in the "
                         "checkpoint, so export and the estimator follow)")
+    p.add_argument("--shift", type=_count, default=0, metavar="PX",
+                   help="augmentation: shift each training clip by up to PX pixels in x and y (default 0: off)")
+    p.add_argument("--zoom", type=_fraction, default=0.0, metavar="FRAC",
+                   help="augmentation: zoom each training clip by a factor in [1 - FRAC, 1 + FRAC] about the image "
+                        "centre (default 0: off; the rendered cameras' distances span about +-14%%)")
     p.add_argument("--full-clips", action="store_true",
                    help="train on full 25-frame clips only (default: streaming students see random prefixes)")
     return p
@@ -152,6 +183,16 @@ def _count(text: str) -> int:
     if not text.isdigit():
         raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
     return int(text)
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1), got {text!r}")
+    return value
 
 
 def _channels(text: str) -> tuple[int, ...]:
@@ -204,10 +245,11 @@ def run(args) -> Path:
     on_device = None
     if args.videos_on_device == "yes" or (args.videos_on_device == "auto" and rt.device.type == "cuda"):
         on_device = videos_on_device(frames, rt.device, rt.main and not args.no_progress)
-    train_set = VideoSet(ds, ds.videos_of(train_idx), frames, targets, prefix, True, args.seed, on_device)
+    train_set = VideoSet(ds, ds.videos_of(train_idx), frames, targets, prefix, True, args.seed, on_device,
+                         args.shift, args.zoom)
     val_set = VideoSet(ds, ds.first_view_videos(val_idx), frames, targets, False, False, args.seed, on_device)
     meta = {"config": config.to_dict(), "size": args.size, "ablation": args.ablation, "kind": config.kind,
-            "teacher": str(args.teacher or ""), "seed": args.seed,
+            "teacher": str(args.teacher or ""), "seed": args.seed, "augment": {"shift": args.shift, "zoom": args.zoom},
             "loss_weights": {"align": args.align_weight, "ce": CE_WEIGHT, "regl1": args.regl1_weight, "nll": NLL_WEIGHT}}
     out = Path(args.out)
     fit(model, train_set, val_set, student_loss(args.ablation, args.alpha, args.align_weight, args.regl1_weight), out, fit_config(args), rt, meta,
