@@ -361,3 +361,40 @@ def test_ddp_two_processes_gloo(bags, teacher_ckpt, tmp_path):
     # One log line per epoch (rank 0 only).
     assert result.stdout.count("student[streaming,full] epoch=1") + result.stderr.count(
         "student[streaming,full] epoch=1") == 1
+
+
+def test_evaluate_teacher_writes_the_papers_table(bags, teacher_ckpt, tmp_path, capsys):
+    """`python -m training evaluate-teacher`: the teacher's own predictions, scored and reported as
+    the students' reports are."""
+    from ad_estimator.metrics import compute_metrics
+    from training.__main__ import main
+    from training.train_teacher import load_teacher, teacher_predictions
+
+    out = tmp_path / "report"
+    assert main(["evaluate-teacher", "--teacher", str(teacher_ckpt), "--bags", str(bags), "--cache",
+                 str(tmp_path / "cache"), "--out", str(out), "--device", "cpu", "--no-progress"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert list(metrics["frames"]) == ["25"] and (out / "report.md").exists() and (out / "confusion.png").exists()
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    expected = compute_metrics(teacher_predictions(load_teacher(teacher_ckpt), ds, "cpu"))
+    assert metrics["frames"]["25"]["regl1"] == pytest.approx(expected["regl1"])
+    assert metrics["frames"]["25"]["n"] == len(ds)
+    assert "RegL1" in capsys.readouterr().out
+
+
+def test_checkpoint_errors_are_one_clear_line(bags, teacher_ckpt, tmp_path, capsys):
+    from training.__main__ import main
+
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(Path(teacher_ckpt).read_bytes()[:1000])
+    student = run_student(_args(bags, tmp_path / "s", tmp_path / "cache", epochs=1, kind="streaming",
+                                ablation="none", alpha=0.5, full_clips=False))
+    cases = {truncated: "not a readable checkpoint", student: "student's checkpoint, not a teacher's",
+             tmp_path / "missing.pt": "No such file"}
+    for path, message in cases.items():
+        assert main(["evaluate-teacher", "--teacher", str(path), "--bags", str(bags), "--out", str(tmp_path / "r"),
+                     "--device", "cpu", "--no-progress"]) == 1
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
+    with pytest.raises(ValueError, match="teacher's checkpoint, not a student's"):
+        load_student(teacher_ckpt)

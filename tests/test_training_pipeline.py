@@ -12,7 +12,7 @@ from training.__main__ import main
 from training.synthetic import write_synthetic_bag
 
 REPO = Path(__file__).resolve().parents[1]
-COMMANDS = ("cache", "teacher", "student", "export", "evaluate", "pipeline")
+COMMANDS = ("cache", "teacher", "student", "export", "evaluate", "evaluate-teacher", "pipeline")
 
 
 @pytest.mark.parametrize("command", COMMANDS)
@@ -20,7 +20,7 @@ def test_help(command, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main([command, "--help"])
     assert exit_info.value.code == 0
-    assert "--seed" in capsys.readouterr().out or command in ("cache", "evaluate")
+    assert "--seed" in capsys.readouterr().out or command in ("cache", "evaluate", "evaluate-teacher")
 
 
 def test_pipeline_end_to_end_and_resume(tmp_path, capsys):

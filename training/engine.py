@@ -124,7 +124,17 @@ def save_checkpoint(path: Path, state: dict) -> None:
 
 
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
-    return torch.load(path, map_location=device, weights_only=True)
+    """A checkpoint written by `fit`, with a clear error for a truncated or foreign file."""
+    try:
+        state = torch.load(path, map_location=device, weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as e:  # a truncated archive, a pickle with foreign objects, not a torch file at all
+        raise ValueError(f"{path} is not a readable checkpoint ({type(e).__name__}: {e}); "
+                         "copy it again or retrain") from e
+    if not isinstance(state, dict) or not {"model", "meta"} <= state.keys():
+        raise ValueError(f"{path} is not a checkpoint written by python -m training (it has no model and meta)")
+    return state
 
 
 def _unwrap(model: torch.nn.Module) -> torch.nn.Module:

@@ -9,7 +9,7 @@ import torch
 from torch.utils.data import Dataset as TorchDataset
 
 from ad_estimator.metrics import Predictions
-from ad_sim.materials import PARAMETER_NAMES, denormalise
+from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
 from training import data
 from training.engine import (BEST, SELECT_METRICS, FitConfig, fit, init_runtime, load_checkpoint, main_first,
                              seed_everything)
@@ -78,6 +78,8 @@ def teacher_loss(model, batch, train: bool):
 
 def load_teacher(path: str | Path, device="cpu") -> Teacher:
     state = load_checkpoint(path, device)
+    if "kind" in state["meta"]:
+        raise ValueError(f"{path} is a {state['meta']['kind']} student's checkpoint, not a teacher's")
     teacher = Teacher(TeacherConfig(**state["meta"]["config"]))
     teacher.load_state_dict(state["model"])
     return teacher.to(device).eval()
@@ -163,3 +165,36 @@ def run(args) -> Path:
         teacher_loss, out, fit_config(args), rt, meta={"config": config.to_dict(), "size": args.size},
         desc="teacher")
     return out / BEST
+
+
+def build_eval_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="python -m training evaluate-teacher")
+    p.description = ("Evaluate a trained teacher on bags' tracked particles (privileged states the robot never "
+                     "has): the paper's table for all 25 frames, as a ceiling for what the video students "
+                     "distilled from it can reach. Writes metrics.json, report.md and plots.")
+    p.add_argument("--teacher", required=True, help="teacher checkpoint (best.pt of `python -m training teacher`)")
+    p.add_argument("--bags", required=True, help="evaluation bags (e.g. bags/paper/unseen)")
+    p.add_argument("--cache", default=".cache/training", help="array cache folder")
+    p.add_argument("--out", required=True, help="report folder")
+    p.add_argument("--title", help="report title (default: the checkpoint and the bags)")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    p.add_argument("--amp", action="store_true", help="bfloat16 autocast (CUDA only)")
+    p.add_argument("--batch-size", type=int, default=64, help="instances per forward pass")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return p
+
+
+def run_eval(args) -> dict:
+    from ad_estimator.metrics import format_table, write_report
+
+    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available()
+                          else "cpu" if args.device == "auto" else args.device)
+    teacher = load_teacher(args.teacher, device)
+    ds = data.load_dataset(args.bags, args.cache, progress=not args.no_progress)
+    with torch.autocast(device.type, torch.bfloat16, enabled=args.amp and device.type == "cuda"):
+        predictions = teacher_predictions(teacher, ds, device, args.batch_size)
+    title = args.title or f"teacher {args.teacher} on {args.bags}"
+    results = write_report({FRAME_COUNT: predictions}, args.out, title)
+    print(format_table(results, title))
+    print(f"report: {Path(args.out) / 'report.md'}")
+    return results
