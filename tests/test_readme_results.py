@@ -188,8 +188,21 @@ SECTION_9 = {
      for split in ("seen", "unseen") for run, what in UNDERFIT_RUNS.items()}
 
 
+# docs/results/paper/experiments/README.md, section 10: row label -> metrics file
+REGULARISATION_RUNS = {"drop2": "dropout 0.2", "drop3": "dropout 0.3", "wd1e2": "weight decay 1e-2",
+                       "wd5e2": "weight decay 5e-2", "shift8": "shift up to 8 px", "zoom10": "zoom ±10%",
+                       "aug": "shift 8 px and zoom 10%", "augreg": "and dropout 0.2, weight decay 1e-2"}
+SECTION_10 = {
+    f"{split}, `h3reg2`, seed 0 (**shipped**)": f"streaming_earlier3_reg2_{split}/metrics.json" for split in ("seen", "unseen")
+} | {f"{split}, `{run}` ({what})": f"experiments/regularisation/{run}_{split}.json"
+     for split in ("seen", "unseen") for run, what in REGULARISATION_RUNS.items()
+} | {f"{split}, the teacher (particle trajectories)": f"experiments/regularisation/teacher_{split}.json"
+     for split in ("seen", "unseen")}
+
+
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
-                                                   ("## 7. ", SECTION_7), ("## 8. ", SECTION_8), ("## 9. ", SECTION_9)])
+                                                   ("## 7. ", SECTION_7), ("## 8. ", SECTION_8), ("## 9. ", SECTION_9),
+                                                   ("## 10. ", SECTION_10)])
 def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
     for label, file in rows_to_files.items():
