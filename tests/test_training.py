@@ -19,7 +19,7 @@ from training.models.student import (StudentConfig, build_student, earlier_obser
                                      student_preset)
 from training.models.teacher import TEACHER_PRESETS, Teacher, farthest_point_sampling, strain_features
 from training.synthetic import write_synthetic_bag
-from training.train_student import ABLATIONS, VideoSet, build_parser, load_student, reframe, student_loss, videos_on_device
+from training.train_student import ABLATIONS, VideoSet, load_student, reframe, student_loss, videos_on_device
 from training.train_student import build_parser as build_student_parser
 from training.train_student import run as run_student
 from training.train_teacher import SYMMETRIES, transform_trajectory
@@ -283,7 +283,7 @@ def test_reframe_shifts_and_zooms_about_the_centre():
 @pytest.mark.parametrize("option", [["--zoom", "1.0"], ["--zoom", "-0.1"], ["--zoom", "x"], ["--shift", "-2"]])
 def test_augmentation_options_are_checked(option, capsys):
     with pytest.raises(SystemExit):
-        build_parser().parse_args(["--bags", "b", "--out", "o", *option])
+        build_student_parser().parse_args(["--bags", "b", "--out", "o", *option])
     assert "expected" in capsys.readouterr().err
 
 
@@ -398,3 +398,6 @@ def test_checkpoint_errors_are_one_clear_line(bags, teacher_ckpt, tmp_path, caps
         assert message in err and len(err.strip().splitlines()) == 1, err
     with pytest.raises(ValueError, match="teacher's checkpoint, not a student's"):
         load_student(teacher_ckpt)
+    assert main(["evaluate-teacher", "--teacher", str(teacher_ckpt), "--bags", str(bags), "--out", str(tmp_path / "r"),
+                 "--device", "cpu", "--batch-size", "0"]) == 1
+    assert "--batch-size must be at least 1" in capsys.readouterr().err

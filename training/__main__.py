@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
         "export": (export.build_parser, export.run, "export a student to ONNX with metadata"),
         "evaluate": (evaluate.build_parser, evaluate.run, "evaluate an ONNX student on bags"),
         "evaluate-teacher": (train_teacher.build_eval_parser, train_teacher.run_eval,
-                             "evaluate a teacher on bags' particle trajectories (the students' ceiling)"),
+                             "evaluate a teacher on bags' particle trajectories (a reference for its students)"),
         "pipeline": (pipeline.build_parser, pipeline.run, "bags (generated if missing) -> exported, evaluated model"),
         "baseline": (baseline.build_parser, baseline.run, "per-scene CMA-ES baseline over re-simulated masks"),
         "resim-psnr": (resim_psnr.build_parser, resim_psnr.run, "re-simulation PSNR of a student's estimates on bags"),

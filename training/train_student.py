@@ -138,8 +138,8 @@ def student_loss(ablation: str, alpha: float, align_weight: float = ALIGN_WEIGHT
 
 
 def load_student(path: str | Path, device="cpu") -> tuple[torch.nn.Module, dict]:
-    state = load_checkpoint(path, device)
-    if "kind" not in state["meta"]:
+    state = load_checkpoint(path)
+    if "kind" not in state["meta"].get("config", {}):  # every StudentConfig has a kind, no TeacherConfig has
         raise ValueError(f"{path} is a teacher's checkpoint, not a student's")
     config = StudentConfig.from_dict(state["meta"]["config"])
     model = build_student(config)

@@ -77,9 +77,9 @@ def teacher_loss(model, batch, train: bool):
 
 
 def load_teacher(path: str | Path, device="cpu") -> Teacher:
-    state = load_checkpoint(path, device)
-    if "kind" in state["meta"]:
-        raise ValueError(f"{path} is a {state['meta']['kind']} student's checkpoint, not a teacher's")
+    state = load_checkpoint(path)
+    if "kind" in state["meta"].get("config", {}):  # every StudentConfig has a kind, no TeacherConfig has
+        raise ValueError(f"{path} is a {state['meta']['config']['kind']} student's checkpoint, not a teacher's")
     teacher = Teacher(TeacherConfig(**state["meta"]["config"]))
     teacher.load_state_dict(state["model"])
     return teacher.to(device).eval()
@@ -170,8 +170,8 @@ def run(args) -> Path:
 def build_eval_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     p = p or argparse.ArgumentParser(prog="python -m training evaluate-teacher")
     p.description = ("Evaluate a trained teacher on bags' tracked particles (privileged states the robot never "
-                     "has): the paper's table for all 25 frames, as a ceiling for what the video students "
-                     "distilled from it can reach. Writes metrics.json, report.md and plots.")
+                     "has): the paper's table for all 25 frames, as a reference for the video students "
+                     "distilled from it, which see less. Writes metrics.json, report.md and plots.")
     p.add_argument("--teacher", required=True, help="teacher checkpoint (best.pt of `python -m training teacher`)")
     p.add_argument("--bags", required=True, help="evaluation bags (e.g. bags/paper/unseen)")
     p.add_argument("--cache", default=".cache/training", help="array cache folder")
@@ -187,8 +187,9 @@ def build_eval_parser(p: argparse.ArgumentParser | None = None) -> argparse.Argu
 def run_eval(args) -> dict:
     from ad_estimator.metrics import format_table, write_report
 
-    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available()
-                          else "cpu" if args.device == "auto" else args.device)
+    if args.batch_size < 1:
+        raise ValueError(f"--batch-size must be at least 1, got {args.batch_size}")
+    device = init_runtime(args.device).device
     teacher = load_teacher(args.teacher, device)
     ds = data.load_dataset(args.bags, args.cache, progress=not args.no_progress)
     with torch.autocast(device.type, torch.bfloat16, enabled=args.amp and device.type == "cuda"):
