@@ -22,7 +22,7 @@ from training.synthetic import write_synthetic_bag
 from training.train_student import ABLATIONS, VideoSet, load_student, reframe, student_loss, videos_on_device
 from training.train_student import build_parser as build_student_parser
 from training.train_student import run as run_student
-from training.train_teacher import SYMMETRIES, transform_trajectory
+from training.train_teacher import SYMMETRIES, TrajectoriesOnDevice, TrajectorySet, transform_trajectories
 from training.train_teacher import run as run_teacher
 
 REPO = Path(__file__).resolve().parents[1]
@@ -38,7 +38,7 @@ def bags(tmp_path_factory):
 def _args(bags, out, cache, **kw):
     base = dict(bags=str(bags), cache=str(cache), out=str(out), size="tiny", epochs=2, batch_size=4, lr=3e-3,
                 min_lr=1e-5, weight_decay=1e-4, val_fraction=0.2, seed=0, device="cpu", threads=0, no_progress=True,
-                videos_on_device="auto", align_weight=0.1, regl1_weight=0.2, stop_after=0, amp=False,
+                videos_on_device="auto", trajectories_on_device="auto", align_weight=0.1, regl1_weight=0.2, stop_after=0, amp=False,
                 encoder_channels=None, previous_frames=0, teacher=None, select="score", set=None, shift=0, zoom=0.0)
     base.update(kw)
     return Namespace(**base)
@@ -67,8 +67,11 @@ def test_square_symmetries_are_exact_augmentations():
     rng = np.random.default_rng(0)
     traj = rng.normal(size=(25, 16, 15)).astype(np.float32)
     traj[..., :3] = rng.uniform(0.2, 0.8, size=(25, 16, 3))
-    for r in SYMMETRIES:
-        out = transform_trajectory(traj, r)
+    outs = transform_trajectories(torch.from_numpy(np.stack([traj] * 8)), torch.from_numpy(SYMMETRIES)).numpy()
+    np.testing.assert_allclose(outs[0], traj, atol=1e-6)  # the first symmetry is the identity
+    for r, out in zip(SYMMETRIES, outs):
+        np.testing.assert_allclose(out[..., 3:6], traj[..., 3:6] @ r.T, atol=1e-6)
+        np.testing.assert_allclose(out[..., 6:].reshape(-1, 3, 3), r @ traj[..., 6:].reshape(-1, 3, 3) @ r.T, atol=1e-5)
         np.testing.assert_allclose(out[..., 2], traj[..., 2], atol=1e-6)  # gravity axis untouched
         np.testing.assert_allclose(np.linalg.norm(out[..., 3:6], axis=-1), np.linalg.norm(traj[..., 3:6], axis=-1),
                                    rtol=1e-5)
@@ -96,6 +99,33 @@ def test_teacher_learns_and_resumes_exactly(bags, tmp_path):
     for key, value in a["model"].items():
         torch.testing.assert_close(b["model"][key], value, rtol=0, atol=0)
     assert (tmp_path / "ref" / engine.BEST).exists()
+
+
+def test_teacher_batches_built_on_device_match_host_batches(bags, tmp_path):
+    """Trajectories and tubes held in (here CPU) device memory give the host path's batches, symmetries included."""
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    teacher = Teacher(TEACHER_PRESETS["tiny"])
+    on_device = TrajectoriesOnDevice(ds, teacher, torch.device("cpu"))
+    instances = np.arange(len(ds))
+    for augment in (True, False):
+        host = TrajectorySet(ds, instances, augment, 5, teacher)
+        device = TrajectorySet(ds, instances, augment, 5, teacher, on_device)
+        host.set_epoch(1), device.set_epoch(1)
+        a, b = (s.collate([s[k] for k in range(len(instances))]) for s in (host, device))
+        assert a.keys() == b.keys()
+        for key in a:
+            torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
+        raw = torch.from_numpy(np.stack([ds.trajectory(i) for i in instances]))
+        assert torch.equal(a["trajectory"], raw) != augment  # augmentation really transforms
+
+
+def test_teacher_trains_the_same_with_trajectories_on_device(bags, tmp_path):
+    weights = []
+    for where in ("no", "yes"):
+        best = run_teacher(_args(bags, tmp_path / where, tmp_path / "cache", epochs=1, trajectories_on_device=where))
+        weights.append(torch.load(best, weights_only=True)["model"])
+    for key, value in weights[0].items():
+        torch.testing.assert_close(weights[1][key], value, rtol=0, atol=0)
 
 
 @pytest.fixture(scope="module")

@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch.utils.data import Dataset as TorchDataset
+from torch.utils.data import default_collate
+from tqdm import tqdm
 
 from ad_estimator.metrics import Predictions
 from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
@@ -28,27 +30,50 @@ def _square_symmetries() -> np.ndarray:
     return np.stack(out)
 
 
-SYMMETRIES = _square_symmetries()
+SYMMETRIES = _square_symmetries()  # index 0 is the identity
 
 
-def transform_trajectory(traj: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Applies an orthogonal map r about the domain centre: x -> r (x - c) + c, dx -> r dx, F -> r F r^T."""
-    out = np.empty_like(traj)
-    centre = np.array([0.5, 0.5, 0.0], dtype=np.float32)
-    out[..., :3] = (traj[..., :3] - centre) @ r.T + centre
-    out[..., 3:6] = traj[..., 3:6] @ r.T
-    f = traj[..., 6:].reshape(*traj.shape[:-1], 3, 3)
-    out[..., 6:] = (r @ f @ r.T).reshape(*traj.shape[:-1], 9)
-    return out
+def transform_trajectories(traj: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """Applies orthogonal maps r (B, 3, 3) about the domain centre to trajectories (B, T, N, 15):
+    x -> r (x - c) + c, dx -> r dx, F -> r F r^T."""
+    centre = traj.new_tensor([0.5, 0.5, 0.0])
+    r = r.to(traj)
+    rt = r.transpose(-1, -2)[:, None]  # (B, 1, 3, 3): the same map for every frame of a trajectory
+    f = traj[..., 6:].unflatten(-1, (3, 3))
+    f = r[:, None, None] @ f @ rt[:, None]
+    return torch.cat([(traj[..., :3] - centre) @ rt + centre, traj[..., 3:6] @ rt, f.flatten(-2)], dim=-1)
+
+
+class TrajectoriesOnDevice:
+    """Every instance's trajectory and point tubes in device memory, rows in instance order: the paper
+    split's 9,000 trajectories are 14 GB as float32, fine on a data-centre GPU. Building batches there
+    removes the per-item host work (reading, symmetry transform) that kept the GPU waiting."""
+
+    def __init__(self, ds: data.Dataset, teacher: Teacher, device: torch.device, progress: bool = False):
+        self.trajectories = torch.empty((len(ds), *ds.trajectory(0).shape), dtype=torch.float32, device=device)
+        anchors, neighbours = [], []
+        for start in tqdm(range(0, len(ds), 256), desc="trajectories to device", unit="chunk", disable=not progress,
+                          leave=False):
+            rows = range(start, min(len(ds), start + 256))  # bounded host memory per copy
+            chunk = torch.from_numpy(np.stack([ds.trajectory(i) for i in rows])).to(device)
+            self.trajectories[start:start + len(chunk)] = chunk
+            a, n = teacher.tubes(chunk[:, :1])
+            anchors.append(a), neighbours.append(n)
+        self.anchors, self.neighbours = torch.cat(anchors), torch.cat(neighbours)
 
 
 class TrajectorySet(TorchDataset):
     """Trajectories with labels and each instance's point tubes (anchors and neighbours at t=0,
-    computed once: they depend only on the first frame, and the square symmetries keep them)."""
+    computed once: they depend only on the first frame, and the square symmetries keep them).
 
-    def __init__(self, ds: data.Dataset, instances: np.ndarray, augment: bool, seed: int, teacher: Teacher):
+    Items carry a symmetry (index into SYMMETRIES; the identity without `augment`) that `collate`
+    applies to the whole batch. With `on_device`, items carry only the instance's row, and `collate`
+    gathers trajectories and tubes on that device: the same batches as the host path."""
+
+    def __init__(self, ds: data.Dataset, instances: np.ndarray, augment: bool, seed: int, teacher: Teacher,
+                 on_device: TrajectoriesOnDevice | None = None):
         self.ds, self.instances, self.augment, self.seed, self.epoch = ds, instances, augment, seed, 0
-        self.teacher = teacher
+        self.teacher, self.on_device = teacher, on_device
         self._tubes: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def set_epoch(self, epoch: int) -> None:
@@ -59,16 +84,29 @@ class TrajectorySet(TorchDataset):
 
     def __getitem__(self, k: int) -> dict:
         i = int(self.instances[k])
-        traj = self.ds.trajectory(i)
-        if i not in self._tubes:
-            anchors, neighbours = self.teacher.tubes(torch.from_numpy(traj[None, :1]))
-            self._tubes[i] = (anchors[0], neighbours[0])
-        if self.augment:
-            sym = np.random.default_rng([self.seed, self.epoch, i]).integers(len(SYMMETRIES))
-            traj = transform_trajectory(traj, SYMMETRIES[sym])
-        return {"trajectory": torch.from_numpy(traj), "anchors": self._tubes[i][0], "neighbours": self._tubes[i][1],
-                "label": torch.tensor(self.ds.labels[i]),
+        sym = int(np.random.default_rng([self.seed, self.epoch, i]).integers(len(SYMMETRIES))) if self.augment else 0
+        item = {"sym": torch.tensor(sym), "label": torch.tensor(self.ds.labels[i]),
                 "target": torch.from_numpy(self.ds.params_norm[i]), "mask": torch.from_numpy(self.ds.param_mask[i])}
+        if self.on_device is not None:
+            item["row"] = torch.tensor(i)
+            return item
+        traj = torch.from_numpy(self.ds.trajectory(i))
+        if i not in self._tubes:
+            anchors, neighbours = self.teacher.tubes(traj[None, :1])
+            self._tubes[i] = (anchors[0], neighbours[0])
+        item.update(trajectory=traj, anchors=self._tubes[i][0], neighbours=self._tubes[i][1])
+        return item
+
+    def collate(self, items: list[dict]) -> dict:
+        batch = default_collate(items)
+        if self.on_device is not None:
+            rows = batch.pop("row").to(self.on_device.trajectories.device)
+            batch.update(trajectory=self.on_device.trajectories[rows], anchors=self.on_device.anchors[rows],
+                         neighbours=self.on_device.neighbours[rows])
+        sym = batch.pop("sym")
+        if sym.any():
+            batch["trajectory"] = transform_trajectories(batch["trajectory"], torch.from_numpy(SYMMETRIES)[sym])
+        return batch
 
 
 def teacher_loss(model, batch, train: bool):
@@ -147,6 +185,8 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.description = ("Stage I: train the P4Transformer-style trajectory teacher (CE + masked RegL1) on the "
                      "tracked particles of MCAP bags. Writes <out>/last.pt (resume) and <out>/best.pt.")
     add_common_args(p, epochs=300, batch_size=32, lr=1e-4)
+    p.add_argument("--trajectories-on-device", choices=["auto", "yes", "no"], default="auto",
+                   help="keep every trajectory on the GPU and build batches there (auto: on CUDA)")
     return p
 
 
@@ -159,9 +199,12 @@ def run(args) -> Path:
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
     config = TEACHER_PRESETS[args.size]
     model = Teacher(config).to(rt.device)
+    on_device = None
+    if args.trajectories_on_device == "yes" or (args.trajectories_on_device == "auto" and rt.device.type == "cuda"):
+        on_device = TrajectoriesOnDevice(ds, model, rt.device, rt.main and not args.no_progress)
     out = Path(args.out)
-    fit(model, TrajectorySet(ds, train_idx, True, args.seed, model),
-        TrajectorySet(ds, val_idx, False, args.seed, model),
+    fit(model, TrajectorySet(ds, train_idx, True, args.seed, model, on_device),
+        TrajectorySet(ds, val_idx, False, args.seed, model, on_device),
         teacher_loss, out, fit_config(args), rt, meta={"config": config.to_dict(), "size": args.size},
         desc="teacher")
     return out / BEST
