@@ -105,8 +105,8 @@ def test_teacher_batches_built_on_device_match_host_batches(bags, tmp_path):
     """Trajectories and tubes held in (here CPU) device memory give the host path's batches, symmetries included."""
     ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
     teacher = Teacher(TEACHER_PRESETS["tiny"])
-    on_device = TrajectoriesOnDevice(ds, teacher, torch.device("cpu"))
-    instances = np.arange(len(ds))
+    on_device = TrajectoriesOnDevice(ds, teacher, torch.device("cpu"), chunk=4)  # several chunks, one partial
+    instances = np.array([7, 2, 5, 0, 8])  # not positions: a wrong row index shows
     for augment in (True, False):
         host = TrajectorySet(ds, instances, augment, 5, teacher)
         device = TrajectorySet(ds, instances, augment, 5, teacher, on_device)

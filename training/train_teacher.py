@@ -49,15 +49,16 @@ class TrajectoriesOnDevice:
     split's 9,000 trajectories are 14 GB as float32, fine on a data-centre GPU. Building batches there
     removes the per-item host work (reading, symmetry transform) that kept the GPU waiting."""
 
-    def __init__(self, ds: data.Dataset, teacher: Teacher, device: torch.device, progress: bool = False):
+    def __init__(self, ds: data.Dataset, teacher: Teacher, device: torch.device, progress: bool = False,
+                 chunk: int = 256):
         self.trajectories = torch.empty((len(ds), *ds.trajectory(0).shape), dtype=torch.float32, device=device)
         anchors, neighbours = [], []
-        for start in tqdm(range(0, len(ds), 256), desc="trajectories to device", unit="chunk", disable=not progress,
+        for start in tqdm(range(0, len(ds), chunk), desc="trajectories to device", unit="chunk", disable=not progress,
                           leave=False):
-            rows = range(start, min(len(ds), start + 256))  # bounded host memory per copy
-            chunk = torch.from_numpy(np.stack([ds.trajectory(i) for i in rows])).to(device)
-            self.trajectories[start:start + len(chunk)] = chunk
-            a, n = teacher.tubes(chunk[:, :1])
+            rows = range(start, min(len(ds), start + chunk))  # bounded host memory per copy
+            part = torch.from_numpy(np.stack([ds.trajectory(i) for i in rows])).to(device)
+            self.trajectories[start:start + len(part)] = part
+            a, n = teacher.tubes(part[:, :1])
             anchors.append(a), neighbours.append(n)
         self.anchors, self.neighbours = torch.cat(anchors), torch.cat(neighbours)
 
