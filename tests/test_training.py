@@ -393,6 +393,22 @@ def test_ddp_two_processes_gloo(bags, teacher_ckpt, tmp_path):
         "student[streaming,full] epoch=1") == 1
 
 
+def test_ddp_teacher_with_trajectories_on_device_stops_and_resumes(bags, tmp_path):
+    """What the GPU job does (run in time slices under torchrun), over gloo: each rank holds every
+    trajectory, builds its batches from it, stops after one epoch and resumes for the second."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
+    out = tmp_path / "ddp_teacher"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "training",
+           "teacher", "--bags", str(bags), "--cache", str(tmp_path / "cache"), "--out", str(out), "--size", "tiny",
+           "--epochs", "2", "--batch-size", "2", "--device", "cpu", "--trajectories-on-device", "yes",
+           "--stop-after", "1", "--no-progress"]
+    for epoch in (1, 2):
+        result = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
+        assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+        assert torch.load(out / engine.LAST, weights_only=True)["epoch"] == epoch
+        assert (result.stdout + result.stderr).count(f"teacher epoch={epoch}") == 1
+
+
 def test_evaluate_teacher_writes_the_papers_table(bags, teacher_ckpt, tmp_path, capsys):
     """`python -m training evaluate-teacher`: the teacher's own predictions, scored and reported as
     the students' reports are."""
