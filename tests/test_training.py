@@ -412,7 +412,7 @@ def test_ddp_teacher_with_trajectories_on_device_stops_and_resumes(bags, tmp_pat
 def test_evaluate_teacher_writes_the_papers_table(bags, teacher_ckpt, tmp_path, capsys):
     """`python -m training evaluate-teacher`: the teacher's own predictions, scored and reported as
     the students' reports are."""
-    from ad_estimator.metrics import compute_metrics
+    from ad_estimator.metrics import Predictions, compute_metrics
     from training.__main__ import main
     from training.train_teacher import load_teacher, teacher_predictions
 
@@ -425,6 +425,9 @@ def test_evaluate_teacher_writes_the_papers_table(bags, teacher_ckpt, tmp_path, 
     expected = compute_metrics(teacher_predictions(load_teacher(teacher_ckpt), ds, "cpu"))
     assert metrics["frames"]["25"]["regl1"] == pytest.approx(expected["regl1"])
     assert metrics["frames"]["25"]["n"] == len(ds)
+    saved = json.loads((out / "predictions.json").read_text())
+    again = compute_metrics(Predictions.from_episodes(saved["frames"]["25"], saved["parameter_names"]))
+    assert again["regl1"] == pytest.approx(expected["regl1"]) and len(saved["frames"]["25"]) == len(ds)
     assert "RegL1" in capsys.readouterr().out
 
 

@@ -215,7 +215,8 @@ def build_eval_parser(p: argparse.ArgumentParser | None = None) -> argparse.Argu
     p = p or argparse.ArgumentParser(prog="python -m training evaluate-teacher")
     p.description = ("Evaluate a trained teacher on bags' tracked particles (privileged states the robot never "
                      "has): the paper's table for all 25 frames, as a reference for the video students "
-                     "distilled from it, which see less. Writes metrics.json, report.md and plots.")
+                     "distilled from it, which see less. Writes metrics.json, report.md, plots and per-episode "
+                     "predictions.json.")
     p.add_argument("--teacher", required=True, help="teacher checkpoint (best.pt of `python -m training teacher`)")
     p.add_argument("--bags", required=True, help="evaluation bags (e.g. bags/paper/unseen)")
     p.add_argument("--cache", default=".cache/training", help="array cache folder")
@@ -229,7 +230,7 @@ def build_eval_parser(p: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 
 def run_eval(args) -> dict:
-    from ad_estimator.metrics import format_table, write_report
+    from ad_estimator.metrics import format_table, json_text, write_report
 
     if args.batch_size < 1:
         raise ValueError(f"--batch-size must be at least 1, got {args.batch_size}")
@@ -240,6 +241,9 @@ def run_eval(args) -> dict:
         predictions = teacher_predictions(teacher, ds, device, args.batch_size)
     title = args.title or f"teacher {args.teacher} on {args.bags}"
     results = write_report({FRAME_COUNT: predictions}, args.out, title)
+    (Path(args.out) / "predictions.json").write_text(json_text(  # the layout of the students' evaluate
+        {"teacher": str(args.teacher), "parameter_names": list(PARAMETER_NAMES),
+         "frames": {str(FRAME_COUNT): predictions.episodes()}}, indent=None))
     print(format_table(results, title))
-    print(f"report: {Path(args.out) / 'report.md'}")
+    print(f"report: {Path(args.out) / 'report.md'}  predictions: {Path(args.out) / 'predictions.json'}")
     return results
