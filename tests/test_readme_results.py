@@ -178,26 +178,26 @@ SECTION_8 = {
      for split in ("seen", "unseen") for ablation in ("none", "align_only")}
 
 
+def shipped_and_variants(folder: str, runs: dict[str, str]) -> dict[str, str]:
+    """Rows of a section that compares the shipped run with single-seed variants in experiments/<folder>/."""
+    return {
+        f"{split}, `h3reg2`, seed 0 (**shipped**)": f"streaming_earlier3_reg2_{split}/metrics.json" for split in ("seen", "unseen")
+    } | {f"{split}, `{run}` ({what})": f"experiments/{folder}/{run}_{split}.json"
+         for split in ("seen", "unseen") for run, what in runs.items()}
+
+
 # docs/results/paper/experiments/README.md, section 9: row label -> metrics file
-UNDERFIT_RUNS = {"selreg": "selected on RegL1", "deep6": "6 temporal blocks", "widet": "temporal width 384",
-                 "pool8": "8x8 map, not pooled", "nodrop": "no dropout", "fullclips": "full clips only",
-                 "combo2": "no dropout, 8x8 map", "combo3": "and full clips"}
-SECTION_9 = {
-    f"{split}, `h3reg2`, seed 0 (**shipped**)": f"streaming_earlier3_reg2_{split}/metrics.json" for split in ("seen", "unseen")
-} | {f"{split}, `{run}` ({what})": f"experiments/underfit_check/{run}_{split}.json"
-     for split in ("seen", "unseen") for run, what in UNDERFIT_RUNS.items()}
-
-
-# docs/results/paper/experiments/README.md, section 10: row label -> metrics file
-REGULARISATION_RUNS = {"drop2": "dropout 0.2", "drop3": "dropout 0.3", "wd1e2": "weight decay 1e-2",
-                       "wd5e2": "weight decay 5e-2", "shift8": "shift up to 8 px", "zoom10": "zoom ±10%",
-                       "aug": "shift 8 px and zoom 10%", "augreg": "and dropout 0.2, weight decay 1e-2"}
-SECTION_10 = {
-    f"{split}, `h3reg2`, seed 0 (**shipped**)": f"streaming_earlier3_reg2_{split}/metrics.json" for split in ("seen", "unseen")
-} | {f"{split}, `{run}` ({what})": f"experiments/regularisation/{run}_{split}.json"
-     for split in ("seen", "unseen") for run, what in REGULARISATION_RUNS.items()
-} | {f"{split}, the teacher (particle trajectories)": f"experiments/regularisation/teacher_{split}.json"
-     for split in ("seen", "unseen")}
+SECTION_9 = shipped_and_variants("underfit_check", {
+    "selreg": "selected on RegL1", "deep6": "6 temporal blocks", "widet": "temporal width 384",
+    "pool8": "8x8 map, not pooled", "nodrop": "no dropout", "fullclips": "full clips only",
+    "combo2": "no dropout, 8x8 map", "combo3": "and full clips"})
+# section 10
+SECTION_10 = shipped_and_variants("regularisation", {
+    "drop2": "dropout 0.2", "drop3": "dropout 0.3", "wd1e2": "weight decay 1e-2", "wd5e2": "weight decay 5e-2",
+    "shift8": "shift up to 8 px", "zoom10": "zoom ±10%", "aug": "shift 8 px and zoom 10%",
+    "augreg": "and dropout 0.2, weight decay 1e-2"}) | {
+    f"{split}, the teacher (particle trajectories)": f"experiments/regularisation/teacher_{split}.json"
+    for split in ("seen", "unseen")}
 
 
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
