@@ -35,7 +35,8 @@ sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_w
 from ad_estimator.cli import HelpFormatter  # noqa: E402
 from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel  # noqa: E402
-from ad_estimator.window import DEFAULT_MIN_FRAMES, FrameWindow  # noqa: E402
+from ad_estimator.parameters import PARAMETERS as NODE  # noqa: E402
+from ad_estimator.window import FrameWindow  # noqa: E402
 from common import falling_disc_clips, percentiles  # noqa: E402  (benchmarks/, the script's folder)
 
 TOPIC = "/latency_benchmark/mask"
@@ -176,13 +177,15 @@ def main(argv=None) -> int:
     parser.add_argument("--policy", choices=["anytime", "episode"], default="anytime",
                         help="output policy (the node's output_policy; default: anytime, which with the defaults "
                              "--every-n 1 --min-frames 1 times an estimate at every frame from frame 1, unlike the "
-                             f"node's defaults: output_policy episode, every_n 5, min_frames {DEFAULT_MIN_FRAMES}); "
+                             f"node's defaults: output_policy {NODE['output_policy'][0]}, "
+                             f"every_n {NODE['every_n'][0]}, min_frames {NODE['min_frames'][0]}); "
                              "episode times the 25th frame only")
     parser.add_argument("--every-n", type=int, default=1,
-                        help="anytime: an estimate every N more frames (default: 1, every frame; the node's: 5)")
+                        help="anytime: an estimate every N more frames "
+                             f"(default: 1, every frame; the node's: {NODE['every_n'][0]})")
     parser.add_argument("--min-frames", type=int, default=1,
                         help="anytime: frames before the first estimate "
-                             f"(default: 1, from frame 1; the node's: {DEFAULT_MIN_FRAMES})")
+                             f"(default: 1, from frame 1; the node's: {NODE['min_frames'][0]})")
     parser.add_argument("--rate", type=float, default=1.0, help="publishing speed factor (ROS mode)")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
     parser.add_argument("--provider", choices=sorted(PROVIDERS), default="cpu",

@@ -26,6 +26,7 @@ for pkg in ("ad_sim", "ad_estimator"):
     sys.path.insert(0, str(ROOT / "ros_ws" / "src" / pkg))
 
 from ad_estimator.cli import HelpFormatter  # noqa: E402
+from ad_estimator.metrics import ERROR_KIND  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL  # noqa: E402
 from ad_sim.instances import benchmark  # noqa: E402
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, SAMPLED_PARAMETERS  # noqa: E402
@@ -55,12 +56,12 @@ def model_errors(metrics_path: Path) -> tuple[str, dict[str, dict[str, float]]]:
 
 def moved(family: str, parameters: dict[str, float], name: str, error: float, sign: int) -> dict[str, float]:
     """The parameters with `name` moved by `sign` x its typical error, clipped to the family's range."""
-    low, high, scale = FAMILY_RANGES[family][name]
-    value = parameters[name]
-    if scale == "log":
+    value, kind = parameters[name], ERROR_KIND[name]
+    if kind == "log_mae":
         value *= math.exp(sign * error)
     else:
-        value += sign * (math.radians(error) if name == "friction_angle" else error)
+        value += sign * (math.radians(error) if kind == "mae_deg" else error)
+    low, high, _ = FAMILY_RANGES[family][name]  # not clip_to_family_range: it rejects a nu past 0.5 before clipping
     return {**parameters, name: min(max(value, low), high)}
 
 
@@ -90,39 +91,36 @@ def main(argv=None) -> int:
         chosen += [of_family[i] for i in sorted(picks)]
 
     # One batch: each instance as it is, then each (parameter, direction) move of it.
-    jobs = [(inst, None, 0, inst.parameters) for inst in chosen]
-    for inst in chosen:
+    moves = []  # (index into chosen, parameter, moved parameters)
+    for i, inst in enumerate(chosen):
         for name in SAMPLED_PARAMETERS[inst.material]:
             for sign in (-1, 1):
                 params = moved(inst.material, inst.parameters, name, errors[inst.material][name], sign)
                 if params[name] != inst.parameters[name]:  # at a range edge a move may be clipped away
-                    jobs.append((inst, name, sign, params))
-    print(f"simulating {len(jobs)} episodes ({len(chosen)} instances) on {args.device}", file=sys.stderr)
-    masks = resimulate([j[0] for j in jobs], [(j[0].material, j[3]) for j in jobs], device=args.device,
-                       progress=True)
-    own = {id(inst): masks[i] for i, inst in enumerate(chosen)}
+                    moves.append((i, name, params))
+    episodes = chosen + [chosen[i] for i, _, _ in moves]
+    print(f"simulating {len(episodes)} episodes ({len(chosen)} instances) on {args.device}", file=sys.stderr)
+    masks = resimulate(episodes, [(inst.material, inst.parameters) for inst in chosen]
+                       + [(chosen[i].material, params) for i, _, params in moves], device=args.device, progress=True)
+    psnr = mask_psnr(masks[len(chosen):], masks[[i for i, _, _ in moves]])  # each move against its own instance
 
     rows = []
     for family in args.families:
         for name in SAMPLED_PARAMETERS[family]:
-            psnr = np.array([mask_psnr(masks[k], own[id(j[0])]) for k, j in enumerate(jobs)
-                             if j[1] == name and j[0].material == family])
-            if not len(psnr):  # every move clipped away at a range edge
-                rows.append({"family": family, "parameter": name, "step": errors[family][name], "n": 0,
-                             "median_db": None, "p10_db": None, "p90_db": None})
-                continue
-            rows.append({"family": family, "parameter": name, "step": errors[family][name], "n": int(len(psnr)),
-                         "median_db": float(np.median(psnr)), "p10_db": float(np.percentile(psnr, 10)),
-                         "p90_db": float(np.percentile(psnr, 90))})
-    units = {"youngs_modulus": "x e^{:.3f} (log-MAE)", "yield_stress": "x e^{:.3f} (log-MAE)",
-             "poissons_ratio": "± {:.3f} (MAE)", "friction_angle": "± {:.2f}° (MAE)"}
+            of_pair = np.array([db for db, (i, n, _) in zip(psnr, moves) if n == name and chosen[i].material == family])
+            n = len(of_pair)  # 0: every move clipped away at a range edge
+            rows.append({"family": family, "parameter": name, "step": errors[family][name], "n": n,
+                         "median_db": float(np.median(of_pair)) if n else None,
+                         "p10_db": float(np.percentile(of_pair, 10)) if n else None,
+                         "p90_db": float(np.percentile(of_pair, 90)) if n else None})
+    units = {"log_mae": "x e^{:.3f} (log-MAE)", "mae": "± {:.3f} (MAE)", "mae_deg": "± {:.2f}° (MAE)"}
     print(f"\nMask PSNR against the instance's own masks when one parameter moves by {model_id}'s "
           f"unseen error ({args.size} unseen, {args.instances} instances per family, both directions):\n")
     print("| family | parameter | step | PSNR median (dB) | 10th-90th percentile | moves |")
     print("|---|---|---|---|---|---|")
     for r in rows:
         spread = "n/a | n/a" if not r["n"] else f"{r['median_db']:.1f} | {r['p10_db']:.1f}-{r['p90_db']:.1f}"
-        print(f"| {r['family']} | {r['parameter']} | {units[r['parameter']].format(r['step'])} | {spread} | {r['n']} |")
+        print(f"| {r['family']} | {r['parameter']} | {units[ERROR_KIND[r['parameter']]].format(r['step'])} | {spread} | {r['n']} |")
     if args.json:
         setup = {"instances_per_family": args.instances, "size": args.size, "seed": args.seed,
                  "device": args.device, "model_id": model_id, "episodes": [i.episode_id for i in chosen]}

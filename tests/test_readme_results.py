@@ -167,12 +167,16 @@ SECTION_7 = {f"{split}, `pf` (1 earlier frame, shipped then)": f"streaming_previ
     for split in ("seen", "unseen") for run, what in EARLIER_FRAMES.items()}
 
 
+# Sections 8 to 10 of docs/results/paper/experiments/README.md compare with the shipped run (seed 0) in rows
+# labelled alike.
+SHIPPED_SEED_0 = {
+    f"{split}, `h3reg2`, seed 0 (**shipped**)": f"streaming_earlier3_reg2_{split}/metrics.json" for split in ("seen", "unseen")
+}
+
 # docs/results/paper/experiments/README.md, section 8: row label -> metrics file
 SEED_RUNS = {"h3reg2_s1": "`h3reg2`, seed 1", "h3reg2_s2": "`h3reg2`, seed 2", "pf_s1": "`pf`, seed 1",
              "pf_s2": "`pf`, seed 2", "pfreg2": "1 earlier frame, RegL1 weight 2.0", "h3reg3": "3, RegL1 weight 3.0"}
-SECTION_8 = {
-    f"{split}, `h3reg2`, seed 0 (**shipped**)": f"streaming_earlier3_reg2_{split}/metrics.json" for split in ("seen", "unseen")
-} | {f"{split}, `pf`, seed 0": f"streaming_previous_frame20_{split}/metrics.json" for split in ("seen", "unseen")} | {
+SECTION_8 = SHIPPED_SEED_0 | {f"{split}, `pf`, seed 0": f"streaming_previous_frame20_{split}/metrics.json" for split in ("seen", "unseen")} | {
     f"{split}, {what}": f"experiments/seeds/{run}_{split}.json" for split in ("seen", "unseen") for run, what in SEED_RUNS.items()
 } | {f"{split}, `h3reg2`, {ablation}": f"ablation_earlier3_reg2_{ablation}_20ep_{split}.json"
      for split in ("seen", "unseen") for ablation in ("none", "align_only")}
@@ -180,10 +184,8 @@ SECTION_8 = {
 
 def shipped_and_variants(folder: str, runs: dict[str, str]) -> dict[str, str]:
     """Rows of a section that compares the shipped run with single-seed variants in experiments/<folder>/."""
-    return {
-        f"{split}, `h3reg2`, seed 0 (**shipped**)": f"streaming_earlier3_reg2_{split}/metrics.json" for split in ("seen", "unseen")
-    } | {f"{split}, `{run}` ({what})": f"experiments/{folder}/{run}_{split}.json"
-         for split in ("seen", "unseen") for run, what in runs.items()}
+    return SHIPPED_SEED_0 | {f"{split}, `{run}` ({what})": f"experiments/{folder}/{run}_{split}.json"
+                             for split in ("seen", "unseen") for run, what in runs.items()}
 
 
 # docs/results/paper/experiments/README.md, section 9: row label -> metrics file

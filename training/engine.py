@@ -123,10 +123,11 @@ def save_checkpoint(path: Path, state: dict) -> None:
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
-    """A checkpoint written by `fit`, with a clear error for a truncated or foreign file."""
+def load_checkpoint(path: str | Path, stage: str | None = None) -> dict:
+    """A checkpoint written by `fit`, on the CPU, with a clear error for a truncated or foreign file
+    and, with `stage` ("teacher" or "student"), for a checkpoint of the other stage."""
     try:
-        state = torch.load(path, map_location=device, weights_only=True)
+        state = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise
     except Exception as e:  # a truncated archive, a pickle with foreign objects, not a torch file at all
@@ -134,7 +135,17 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
                          "copy it again or retrain") from e
     if not isinstance(state, dict) or not {"model", "meta"} <= state.keys():
         raise ValueError(f"{path} is not a checkpoint written by python -m training (it has no model and meta)")
+    kind = state["meta"].get("config", {}).get("kind")  # every StudentConfig has a kind, no TeacherConfig has
+    if stage == "teacher" and kind:
+        raise ValueError(f"{path} is a {kind} student's checkpoint, not a teacher's")
+    if stage == "student" and not kind:
+        raise ValueError(f"{path} is a teacher's checkpoint, not a student's")
     return state
+
+
+def wants_on_device(choice: str, rt: Runtime) -> bool:
+    """--videos-on-device / --trajectories-on-device: yes, no, or auto (on CUDA)."""
+    return choice == "yes" or (choice == "auto" and rt.device.type == "cuda")
 
 
 def _unwrap(model: torch.nn.Module) -> torch.nn.Module:

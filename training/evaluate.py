@@ -48,6 +48,16 @@ def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORE
             for k in frames}
 
 
+def write_evaluation(by_frames: dict[int, Predictions], out: str | Path, title: str, source: dict) -> dict:
+    """The report (metrics.json, report.md, plots) and the per-episode predictions.json, headed by
+    `source` (what was evaluated), into `out`; returns the metrics."""
+    results = write_report(by_frames, out, title)
+    (Path(out) / "predictions.json").write_text(json_text(
+        {**source, "parameter_names": list(PARAMETER_NAMES),
+         "frames": {str(k): p.episodes() for k, p in by_frames.items()}}, indent=None))  # compact: 10 prefix lengths
+    return results
+
+
 def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, out: str | Path | None,
                    title: str | None = None, progress: bool = True, threads: int = 1,
                    frames: tuple[int, ...] = FRAMES_SCORED, record: bool = True) -> dict:
@@ -59,10 +69,7 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
     title = title or f"{model.model_id} on {bags}"
     if out is None:
         out = Path(model_path).with_suffix("").with_name(Path(model_path).stem + "_eval")
-    results = write_report(by_frames, out, title)
-    (Path(out) / "predictions.json").write_text(json_text(
-        {"model_id": model.model_id, "model_path": str(model_path), "parameter_names": list(PARAMETER_NAMES),
-         "frames": {str(k): p.episodes() for k, p in by_frames.items()}}, indent=None))  # compact: 10 prefix lengths
+    results = write_evaluation(by_frames, out, title, {"model_id": model.model_id, "model_path": str(model_path)})
     if record:
         print(f"recorded in {update_model_metrics(model_path, {'evaluation': {Path(bags).name: summary(results)}})}")
     table_rows = {k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}

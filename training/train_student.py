@@ -13,7 +13,7 @@ from torch.utils.data import default_collate
 from tqdm import tqdm
 
 from training import data
-from training.engine import BEST, fit, init_runtime, load_checkpoint, main_first, seed_everything
+from training.engine import BEST, fit, init_runtime, load_checkpoint, main_first, seed_everything, wants_on_device
 from training.models.common import align_loss, task_loss
 from training.models.student import FRAME_COUNT, StudentConfig, build_student, override_config, student_preset
 from training.models.teacher import TEACHER_PRESETS
@@ -138,9 +138,7 @@ def student_loss(ablation: str, alpha: float, align_weight: float = ALIGN_WEIGHT
 
 
 def load_student(path: str | Path, device="cpu") -> tuple[torch.nn.Module, dict]:
-    state = load_checkpoint(path)
-    if "kind" not in state["meta"].get("config", {}):  # every StudentConfig has a kind, no TeacherConfig has
-        raise ValueError(f"{path} is a teacher's checkpoint, not a student's")
+    state = load_checkpoint(path, "student")
     config = StudentConfig.from_dict(state["meta"]["config"])
     model = build_student(config)
     model.load_state_dict(state["model"])
@@ -245,7 +243,7 @@ def run(args) -> Path:
     del teacher
     prefix = config.kind == "streaming" and not args.full_clips
     on_device = None
-    if args.videos_on_device == "yes" or (args.videos_on_device == "auto" and rt.device.type == "cuda"):
+    if wants_on_device(args.videos_on_device, rt):
         on_device = videos_on_device(frames, rt.device, rt.main and not args.no_progress)
     train_set = VideoSet(ds, ds.videos_of(train_idx), frames, targets, prefix, True, args.seed, on_device,
                          args.shift, args.zoom)

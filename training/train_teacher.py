@@ -10,11 +10,12 @@ from torch.utils.data import Dataset as TorchDataset
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
-from ad_estimator.metrics import Predictions
+from ad_estimator.metrics import Predictions, format_table
 from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
 from training import data
 from training.engine import (BEST, SELECT_METRICS, FitConfig, fit, init_runtime, load_checkpoint, main_first,
-                             seed_everything)
+                             seed_everything, wants_on_device)
+from training.evaluate import write_evaluation
 from training.models.common import task_loss
 from training.models.teacher import TEACHER_PRESETS, Teacher, TeacherConfig
 
@@ -116,9 +117,7 @@ def teacher_loss(model, batch, train: bool):
 
 
 def load_teacher(path: str | Path, device="cpu") -> Teacher:
-    state = load_checkpoint(path)
-    if "kind" in state["meta"].get("config", {}):  # every StudentConfig has a kind, no TeacherConfig has
-        raise ValueError(f"{path} is a {state['meta']['config']['kind']} student's checkpoint, not a teacher's")
+    state = load_checkpoint(path, "teacher")
     teacher = Teacher(TeacherConfig(**state["meta"]["config"]))
     teacher.load_state_dict(state["model"])
     return teacher.to(device).eval()
@@ -201,7 +200,7 @@ def run(args) -> Path:
     config = TEACHER_PRESETS[args.size]
     model = Teacher(config).to(rt.device)
     on_device = None
-    if args.trajectories_on_device == "yes" or (args.trajectories_on_device == "auto" and rt.device.type == "cuda"):
+    if wants_on_device(args.trajectories_on_device, rt):
         on_device = TrajectoriesOnDevice(ds, model, rt.device, rt.main and not args.no_progress)
     out = Path(args.out)
     fit(model, TrajectorySet(ds, train_idx, True, args.seed, model, on_device),
@@ -230,8 +229,6 @@ def build_eval_parser(p: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 
 def run_eval(args) -> dict:
-    from ad_estimator.metrics import format_table, json_text, write_report
-
     if args.batch_size < 1:
         raise ValueError(f"--batch-size must be at least 1, got {args.batch_size}")
     device = init_runtime(args.device).device
@@ -240,10 +237,7 @@ def run_eval(args) -> dict:
     with torch.autocast(device.type, torch.bfloat16, enabled=args.amp and device.type == "cuda"):
         predictions = teacher_predictions(teacher, ds, device, args.batch_size)
     title = args.title or f"teacher {args.teacher} on {args.bags}"
-    results = write_report({FRAME_COUNT: predictions}, args.out, title)
-    (Path(args.out) / "predictions.json").write_text(json_text(  # the layout of the students' evaluate
-        {"teacher": str(args.teacher), "parameter_names": list(PARAMETER_NAMES),
-         "frames": {str(FRAME_COUNT): predictions.episodes()}}, indent=None))
+    results = write_evaluation({FRAME_COUNT: predictions}, args.out, title, {"teacher": str(args.teacher)})
     print(format_table(results, title))
     print(f"report: {Path(args.out) / 'report.md'}  predictions: {Path(args.out) / 'predictions.json'}")
     return results

@@ -237,7 +237,7 @@ def uncertainty_calibration(pred: Predictions) -> dict | None:
             units = math.degrees(1.0) if kind == "mae_deg" else 1.0
             result[family][name] = {
                 "n": n,
-                "error": float(np.mean(np.abs(residual)) * units),
+                "error": parameter_error(name, value, true),
                 "median_sigma": float(np.median(scale) * units),
                 "coverage_1sigma": float(np.mean(z <= 1.0)),
                 "coverage_2sigma": float(np.mean(z <= 2.0)),

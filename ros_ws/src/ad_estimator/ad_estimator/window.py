@@ -124,8 +124,12 @@ class FrameWindow:
         self.min_frames = min_frames if policy == "anytime" else frame_count
         self.history = history
         self.stats = WindowStats()
-        self.episodes = 0  # episodes started (a restart or reset() ends one; its next frame starts the next)
         self.reset()
+
+    @property
+    def episodes(self) -> int:
+        """Episodes started: each one's first frame counts exactly one restart (its reason, or "first")."""
+        return sum(self.stats.restarts.values())
 
     def reset(self) -> None:
         """Forget the current episode; the next frame starts a new one."""
@@ -170,7 +174,6 @@ class FrameWindow:
             return outputs
         if self._start_ns is None:
             self._start_ns, self._size = stamp_ns, size
-            self.episodes += 1
         self._last_ns = stamp_ns
         if self._done:
             self.stats.ignored += 1
