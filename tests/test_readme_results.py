@@ -200,11 +200,18 @@ SECTION_10 = shipped_and_variants("regularisation", {
     "augreg": "and dropout 0.2, weight decay 1e-2"}) | {
     f"{split}, the teacher (particle trajectories)": f"experiments/regularisation/teacher_{split}.json"
     for split in ("seen", "unseen")}
+# section 11
+SECTION_11 = shipped_and_variants("long_teacher", {
+    "t30_s0": "30-epoch teacher", "t30_s1": "30-epoch teacher, seed 1", "t30_align03": "and alignment weight 0.3",
+    "t30_align1": "and alignment weight 1.0"}) | {
+    "unseen, the 10-epoch teacher (section 10)": "experiments/regularisation/teacher_unseen.json"} | {
+    f"unseen, the 30-epoch teacher at epoch {10 * stop}": f"experiments/long_teacher/teacher30_stop{stop}_unseen.json"
+    for stop in (1, 2, 3)}
 
 
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
                                                    ("## 7. ", SECTION_7), ("## 8. ", SECTION_8), ("## 9. ", SECTION_9),
-                                                   ("## 10. ", SECTION_10)])
+                                                   ("## 10. ", SECTION_10), ("## 11. ", SECTION_11)])
 def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
     for label, file in rows_to_files.items():
