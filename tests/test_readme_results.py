@@ -6,7 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from ad_estimator.metrics import Predictions, format_calibration, format_table, uncertainty_calibration
+from ad_estimator.metrics import (_SHORT, Predictions, error_by_true_value, format_calibration, format_table, table_cell,
+                                  uncertainty_calibration)
+from ad_sim.materials import FRAME_COUNT
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results" / "paper"
@@ -230,3 +232,23 @@ def test_readme_calibration_table_is_the_runtime_checks():
     expected = [line for line in section.splitlines() if line.startswith("| ") and not line.startswith("| family")]
     readme = (ROOT / "README.md").read_text().split("### Uncertainty calibration", 1)[1].split("\n### ", 1)[0]
     assert expected and all(line in readme.splitlines() for line in expected)
+
+
+def test_experiments_error_by_true_value_table_is_the_saved_predictions():
+    """Section 11's error-by-true-value table: the shipped model's and the 30-epoch teacher's
+    columns are what error_by_true_value gives on their saved per-episode predictions."""
+    from training.evaluate import read_predictions
+
+    heading = "### Error by true value: what the student has and has not learnt"
+    section = (RESULTS / "experiments" / "README.md").read_text().split(heading, 1)[1].split("\n#", 1)[0]
+    rows = [cells(line) for line in section.splitlines() if line.startswith("| ") and not line.startswith("| family")]
+    shipped, teacher = (error_by_true_value(read_predictions(RESULTS / file)[0][FRAME_COUNT]) for file in (
+        f"{SHIPPED_REPORTS.format(split='unseen')}/estimator_runtime_predictions.json",
+        "experiments/long_teacher/teacher30_unseen_predictions.json"))
+    names = {short: name for name, short in _SHORT.items()}
+    assert [(family, names[short]) for family, short, *_ in rows] == [
+        (family, name) for family, parameters in shipped.items() for name in parameters]
+    for family, short, *values in rows:
+        s, t = shipped[family][names[short]], teacher[family][names[short]]
+        assert values[:5] == [table_cell(v) for v in (s["all"], s["correlation"], t["all"], t["correlation"],
+                                                       s["constant_guess"])], (family, short)

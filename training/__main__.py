@@ -1,4 +1,4 @@
-"""python -m training {cache,teacher,student,export,evaluate,evaluate-teacher,pipeline,baseline,resim-psnr,compare}"""
+"""python -m training {cache,teacher,student,export,evaluate,evaluate-teacher,report,pipeline,baseline,resim-psnr,compare}"""
 from __future__ import annotations
 
 import argparse
@@ -43,6 +43,8 @@ def main(argv: list[str] | None = None) -> int:
         "evaluate": (evaluate.build_parser, evaluate.run, "evaluate an ONNX student on bags"),
         "evaluate-teacher": (train_teacher.build_eval_parser, train_teacher.run_eval,
                              "evaluate a teacher on bags' particle trajectories (a reference for its students)"),
+        "report": (evaluate.build_report_parser, evaluate.run_report,
+                   "rebuild an evaluation report from a saved predictions.json"),
         "pipeline": (pipeline.build_parser, pipeline.run, "bags (generated if missing) -> exported, evaluated model"),
         "baseline": (baseline.build_parser, baseline.run, "per-scene CMA-ES baseline over re-simulated masks"),
         "resim-psnr": (resim_psnr.build_parser, resim_psnr.run, "re-simulation PSNR of a student's estimates on bags"),

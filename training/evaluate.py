@@ -106,6 +106,56 @@ def run(args) -> dict:
                           args.threads, frames, record=not args.no_record)
 
 
+def read_predictions(path: str | Path) -> tuple[dict[int, Predictions], dict]:
+    """A saved predictions.json (of `evaluate`, `evaluate-teacher` or ad_estimator.evaluate, e.g. an
+    estimator_runtime_predictions.json) -> Predictions per number of frames with records, and the
+    whole file (for its header)."""
+    path = Path(path)
+    what = ("pass a predictions.json written by `python -m training evaluate` or `evaluate-teacher`, or "
+            "`ros2 run ad_estimator evaluate`")
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file; {what}")
+    try:
+        saved = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not valid JSON ({exc}); {what}") from None
+    if not isinstance(saved, dict) or not isinstance(saved.get("frames"), dict):
+        raise ValueError(f'{path} has no "frames" object ({{"25": [episode records], ...}}); {what}')
+    names = saved.get("parameter_names") or PARAMETER_NAMES
+    by_frames = {}
+    for k, records in saved["frames"].items():
+        try:
+            if records:
+                by_frames[int(k)] = Predictions.from_episodes(records, names)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f'{path}: "frames"["{k}"] is not a list of episode records ({exc!r}); {what}') from None
+    if not by_frames:
+        raise ValueError(f'{path}: "frames" holds no episode records, so there is nothing to report; {what}')
+    return by_frames, saved
+
+
+def build_report_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="python -m training report")
+    p.description = ("Rebuild an evaluation report (metrics.json, report.md, plots) from a saved predictions.json, "
+                     "without the model or the bags: e.g. after the report gained a section, or for the "
+                     "estimator runtime's estimator_runtime_predictions.json.")
+    p.add_argument("--predictions", required=True,
+                   help="predictions.json of `evaluate`, `evaluate-teacher` or `ros2 run ad_estimator evaluate`")
+    p.add_argument("--out", required=True, help="report folder")
+    p.add_argument("--title", help="report title (default: the model or teacher the file names, and the file)")
+    return p
+
+
+def run_report(args) -> dict:
+    by_frames, saved = read_predictions(args.predictions)
+    source = saved.get("model_id") or saved.get("teacher")
+    title = args.title or (f"{source} ({args.predictions})" if source else str(args.predictions))
+    results = write_report(by_frames, args.out, title)
+    print(format_table({k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}, title))
+    print(f"report: {Path(args.out) / 'report.md'}")
+    return results
+
+
 def metrics_path(model_path: str | Path) -> Path:
     """<name>.metrics.json next to <name>.onnx."""
     model_path = Path(model_path)

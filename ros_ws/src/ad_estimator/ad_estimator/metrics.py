@@ -7,6 +7,7 @@ Inputs are a `Predictions` per number of observed frames (25 = the full clip, pl
 temporal-OOD prefixes 24, 22, 18, 15). Parameters are SI (friction angle in radians);
 reports show the friction angle in degrees. Where the predictions carry the model's one-sigma
 uncertainties, the full-clip metrics also say how well those are calibrated (uncertainty_calibration).
+The full-clip report also says where the errors lie along each parameter's range (error_by_true_value).
 """
 from __future__ import annotations
 
@@ -339,6 +340,72 @@ def format_calibration(calibration: dict, frames: int = FRAME_COUNT) -> str:
     return "\n".join(lines)
 
 
+def _pearson(x: np.ndarray, y: np.ndarray) -> float:
+    """Pearson's r; NaN where undefined (fewer than 2 clips, a non-finite value, or a constant)."""
+    if len(x) < 2 or not (np.isfinite(x).all() and np.isfinite(y).all()) or np.ptp(x) == 0 or np.ptp(y) == 0:
+        return float("nan")
+    return float(np.corrcoef(x, y)[0, 1])
+
+
+def error_by_true_value(pred: Predictions, bins: int = 3) -> dict:
+    """Where the parameter errors lie: per family (those with clips) and sampled parameter, over all
+    clips of the true family (the "all" convention): n; "bins", `bins` equal-count bins of the true
+    value, lowest first, each with its n, true-value range lo..hi (SI) and error; the error over all
+    ("all"); "constant_guess", the error of always predicting the middle of the family's range (the
+    log-midpoint for log-MAE parameters), what a model that learned nothing scores; "correlation",
+    Pearson's r of predicted and true (log space for log-MAE parameters), NaN where undefined.
+    Errors as parameter_error gives them (phi in degrees)."""
+    result = {}
+    for c, (family, ranges) in enumerate(family_ranges().items()):
+        rows = pred.true_class == c
+        if not rows.any():
+            continue
+        result[family] = {}
+        for name, (lo, hi, _) in ranges.items():
+            j = PARAMETER_NAMES.index(name)
+            p, t = pred.pred_params[rows, j], pred.true_params[rows, j]
+            log = ERROR_KIND[name] == "log_mae"
+            middle = math.sqrt(lo * hi) if log else (lo + hi) / 2
+            # Bin by rank (mid-rank quantile), not by value: equal counts even where true values tie,
+            # and the middle bin gets a leftover (one clip is the median, not the lowest third).
+            rank_bin = ((np.arange(len(t)) + 0.5) * bins / len(t)).astype(int)
+            order = np.argsort(t, kind="stable")
+            groups = [order[rank_bin == b] for b in range(bins)]
+            result[family][name] = {
+                "n": int(rows.sum()),
+                "bins": [{"n": len(g), "lo": float(t[g].min()) if len(g) else float("nan"),
+                          "hi": float(t[g].max()) if len(g) else float("nan"),
+                          "error": parameter_error(name, p[g], t[g])} for g in groups],
+                "all": parameter_error(name, p, t),
+                "constant_guess": parameter_error(name, np.full_like(t, middle), t),
+                "correlation": _pearson(np.log(np.clip(p, 1e-12, None)), np.log(t)) if log else _pearson(p, t),
+            }
+    return result
+
+
+def format_error_by_true_value(table: dict, frames: int) -> str:
+    """error_by_true_value's result as a Markdown section: each bin's error with its true-value range
+    (phi in degrees), the error over all clips, the constant guess's error and the correlation."""
+    k = max((len(e["bins"]) for parameters in table.values() for e in parameters.values()), default=3)
+    names = ["lowest third", "middle third", "highest third"] if k == 3 else [f"bin {i + 1}" for i in range(k)]
+
+    def cell(name: str, b: dict) -> str:
+        if b["n"] == 0:
+            return "n/a"
+        lo, hi = (math.degrees(b[key]) if name == "friction_angle" else b[key] for key in ("lo", "hi"))
+        return f"{table_cell(b['error'])} ({lo:.3g}–{hi:.3g})"
+
+    rows = [[family, _SHORT.get(name, name), *(cell(name, b) for b in e["bins"]),
+             *(table_cell(e[key]) for key in ("all", "constant_guess", "correlation"))]
+            for family, parameters in table.items() for name, e in parameters.items()]
+    return "\n".join([
+        f"### Error by true value ({frames} frames)", "",
+        "Parameter errors over all clips of each family, in equal-count bins of the true value (its range in "
+        "parentheses: SI, phi in degrees), against a constant guess at the middle of the family's range (what a "
+        "model that learned nothing scores) and the correlation of predicted and true (log space for E, yield).",
+        "", *markdown_table(["family", "parameter", *names, "all", "constant guess", "correlation"], rows)])
+
+
 def _plot_confusion(ax, confusion: np.ndarray) -> None:
     ax.imshow(confusion, cmap="Blues")
     ax.set_xticks(range(len(FAMILIES)), FAMILIES)
@@ -415,6 +482,7 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
           f"Clips: {len(full)}; frames per clip: {FRAME_COUNT}.", ""]
     if (calibration := results[str(full_k)].get("calibration")) is not None:
         md += [format_calibration(calibration, full_k), ""]
+    md += [format_error_by_true_value(error_by_true_value(full), full_k), ""]
     md += ["![confusion](confusion.png)", "", "![predicted vs true](pred_vs_true.png)", "",
            "![RegL1 vs frames](regl1_vs_frames.png)", ""]
     (out / "report.md").write_text("\n".join(md))
