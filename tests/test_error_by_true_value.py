@@ -119,6 +119,19 @@ def test_misclassified_clips_count_and_absent_families_are_left_out():
     ten = np.r_[np.flatnonzero(classes == 0), 1]
     ten = error_by_true_value(Predictions(classes[ten], true[ten], probabilities[ten], pred.pred_params[ten]))
     assert [b["n"] for b in ten["jelly"]["youngs_modulus"]["bins"]] == [3, 4, 3]
+    eleven = np.r_[np.flatnonzero(classes == 0), 1, 2]  # two left over: one to each end
+    eleven = error_by_true_value(Predictions(classes[eleven], true[eleven], probabilities[eleven],
+                                             pred.pred_params[eleven]))
+    assert [b["n"] for b in eleven["jelly"]["youngs_modulus"]["bins"]] == [4, 3, 4]
+
+
+def test_clips_without_a_true_value_are_left_out():
+    classes, true = _truth()
+    pred_params = np.where(np.isnan(true), 1.0, true * 1.5)
+    true[0, E] = math.nan  # a jelly clip whose E truth is missing
+    e = error_by_true_value(_predictions(pred_params, classes, true))["jelly"]["youngs_modulus"]
+    assert e["n"] == N - 1 and sum(b["n"] for b in e["bins"]) == N - 1
+    assert e["all"] == pytest.approx(math.log(1.5)) and all(math.isfinite(b["hi"]) for b in e["bins"])
 
 
 def test_formatted_section_has_a_row_per_family_parameter_and_the_columns():
@@ -126,7 +139,7 @@ def test_formatted_section_has_a_row_per_family_parameter_and_the_columns():
     table = error_by_true_value(_predictions(true * 1.1, classes, true))
     text = format_error_by_true_value(table, 18)
     lines = text.splitlines()
-    assert lines[0] == "### Error by true value (18 frames)"
+    assert lines[0] == "## Error by true value (18 frames)"
     assert ("| family | parameter | lowest third | middle third | highest third | all | constant guess | "
             "correlation |") in lines
     rows = [line for line in lines if line.startswith("| ") and not line.startswith("| family")]
@@ -174,7 +187,7 @@ def test_report_command_rebuilds_the_report_of_saved_predictions(tmp_path, capsy
         {"title": "again", "frames": evaluate_all(by_frames)}))
     report = (out / "report.md").read_text()
     assert report == (tmp_path / "direct" / "report.md").read_text()
-    section = report.index("### Error by true value (25 frames)")
+    section = report.index("## Error by true value (25 frames)")
     assert report.index("## Uncertainty calibration (25 frames)") < section < report.index("![confusion]")
     assert format_error_by_true_value(error_by_true_value(by_frames[25]), 25) in report
     for plot in ("confusion.png", "pred_vs_true.png", "regl1_vs_frames.png"):
@@ -202,6 +215,20 @@ def test_report_command_says_what_is_wrong_with_the_file(tmp_path, capsys, conte
     assert err.startswith(f"python -m training report: {path}") and message in err
     assert "predictions.json written by `python -m training evaluate`" in err and "\n" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_report_command_says_what_is_wrong_with_the_paths(tmp_path, capsys):
+    assert main(["report", "--predictions", str(tmp_path), "--out", str(tmp_path / "out")]) == 1
+    assert "is a folder; pass the predictions.json inside it" in capsys.readouterr().err
+    classes, true = _truth()
+    saved = tmp_path / "predictions.json"
+    saved.write_text(json_text({"frames": {"25": _predictions(true, classes, true).episodes()}}))
+    taken = tmp_path / "taken"
+    taken.write_text("a file, not a folder")
+    assert main(["report", "--predictions", str(saved), "--out", str(taken)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert f"cannot write the report to {taken}" in err and "pass another --out" in err and "\n" not in err
+    assert taken.read_text() == "a file, not a folder"
 
 
 def test_report_command_reads_the_estimator_runtimes_predictions(tmp_path):

@@ -207,8 +207,8 @@ SECTION_11 = shipped_and_variants("long_teacher", {
     "t30_s0": "30-epoch teacher", "t30_s1": "30-epoch teacher, seed 1", "t30_align03": "and alignment weight 0.3",
     "t30_align1": "and alignment weight 1.0"}) | {
     "unseen, the 10-epoch teacher (section 10)": "experiments/regularisation/teacher_unseen.json"} | {
-    f"unseen, the 30-epoch teacher at epoch {10 * stop}": f"experiments/long_teacher/teacher30_stop{stop}_unseen.json"
-    for stop in (1, 2, 3)}
+    f"unseen, the 30-epoch teacher, best of epochs 1-{10 * stop} (epoch {best})":
+    f"experiments/long_teacher/teacher30_stop{stop}_unseen.json" for stop, best in ((1, 10), (2, 15), (3, 29))}
 
 
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
@@ -240,7 +240,7 @@ def test_experiments_error_by_true_value_table_is_the_saved_predictions():
     from training.evaluate import read_predictions
 
     heading = "### Error by true value: what the student has and has not learnt"
-    section = (RESULTS / "experiments" / "README.md").read_text().split(heading, 1)[1].split("\n#", 1)[0]
+    section = (RESULTS / "experiments" / "README.md").read_text().split(heading, 1)[1].split("\n## ", 1)[0]
     rows = [cells(line) for line in section.splitlines() if line.startswith("| ") and not line.startswith("| family")]
     shipped, teacher = (error_by_true_value(read_predictions(RESULTS / file)[0][FRAME_COUNT]) for file in (
         f"{SHIPPED_REPORTS.format(split='unseen')}/estimator_runtime_predictions.json",

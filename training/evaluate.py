@@ -113,10 +113,14 @@ def read_predictions(path: str | Path) -> tuple[dict[int, Predictions], dict]:
     path = Path(path)
     what = ("pass a predictions.json written by `python -m training evaluate` or `evaluate-teacher`, or "
             "`ros2 run ad_estimator evaluate`")
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder; pass the predictions.json inside it")
     if not path.is_file():
         raise ValueError(f"{path}: no such file; {what}")
     try:
         saved = json.loads(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"{path} cannot be read ({exc.strerror}); {what}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path} is not valid JSON ({exc}); {what}") from None
     if not isinstance(saved, dict) or not isinstance(saved.get("frames"), dict):
@@ -139,10 +143,12 @@ def build_report_parser(p: argparse.ArgumentParser | None = None) -> argparse.Ar
     p.description = ("Rebuild an evaluation report (metrics.json, report.md, plots) from a saved predictions.json, "
                      "without the model or the bags: e.g. after the report gained a section, or for the "
                      "estimator runtime's estimator_runtime_predictions.json.")
-    p.add_argument("--predictions", required=True,
+    p.add_argument("--predictions", required=True, metavar="FILE",
                    help="predictions.json of `evaluate`, `evaluate-teacher` or `ros2 run ad_estimator evaluate`")
-    p.add_argument("--out", required=True, help="report folder")
-    p.add_argument("--title", help="report title (default: the model or teacher the file names, and the file)")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="report folder, created if missing; its metrics.json, report.md and plots are overwritten")
+    p.add_argument("--title", help="report title (default: the file's model id or teacher, then the file, e.g. "
+                                   "'h3reg2-... (reports/predictions.json)')")
     return p
 
 
@@ -150,7 +156,10 @@ def run_report(args) -> dict:
     by_frames, saved = read_predictions(args.predictions)
     source = saved.get("model_id") or saved.get("teacher")
     title = args.title or (f"{source} ({args.predictions})" if source else str(args.predictions))
-    results = write_report(by_frames, args.out, title)
+    try:
+        results = write_report(by_frames, args.out, title)
+    except OSError as exc:
+        raise ValueError(f"cannot write the report to {args.out} ({exc.strerror or exc}); pass another --out") from None
     print(format_table({k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}, title))
     print(f"report: {Path(args.out) / 'report.md'}")
     return results

@@ -363,16 +363,19 @@ def error_by_true_value(pred: Predictions, bins: int = 3) -> dict:
         result[family] = {}
         for name, (lo, hi, _) in ranges.items():
             j = PARAMETER_NAMES.index(name)
-            p, t = pred.pred_params[rows, j], pred.true_params[rows, j]
+            known = rows & np.isfinite(pred.true_params[:, j])  # a clip without this truth cannot be placed
+            p, t = pred.pred_params[known, j], pred.true_params[known, j]
+            if not len(t):
+                continue
             log = ERROR_KIND[name] == "log_mae"
             middle = math.sqrt(lo * hi) if log else (lo + hi) / 2
-            # Bin by rank (mid-rank quantile), not by value: equal counts even where true values tie,
-            # and the middle bin gets a leftover (one clip is the median, not the lowest third).
+            # Bin by rank (mid-rank quantile), not by value: counts differ by at most one even where true
+            # values tie, and uneven counts stay symmetric (10 clips: 3/4/3; 11: 4/3/4; one clip: the middle).
             rank_bin = ((np.arange(len(t)) + 0.5) * bins / len(t)).astype(int)
             order = np.argsort(t, kind="stable")
             groups = [order[rank_bin == b] for b in range(bins)]
             result[family][name] = {
-                "n": int(rows.sum()),
+                "n": len(t),
                 "bins": [{"n": len(g), "lo": float(t[g].min()) if len(g) else float("nan"),
                           "hi": float(t[g].max()) if len(g) else float("nan"),
                           "error": parameter_error(name, p[g], t[g])} for g in groups],
@@ -399,7 +402,7 @@ def format_error_by_true_value(table: dict, frames: int) -> str:
              *(table_cell(e[key]) for key in ("all", "constant_guess", "correlation"))]
             for family, parameters in table.items() for name, e in parameters.items()]
     return "\n".join([
-        f"### Error by true value ({frames} frames)", "",
+        f"## Error by true value ({frames} frames)", "",
         "Parameter errors over all clips of each family, in equal-count bins of the true value (its range in "
         "parentheses: SI, phi in degrees), against a constant guess at the middle of the family's range (what a "
         "model that learned nothing scores) and the correlation of predicted and true (log space for E, yield).",
