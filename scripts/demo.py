@@ -188,7 +188,8 @@ def main(argv=None) -> int:
             if estimator.poll() is not None:
                 raise RuntimeError(f"the estimator exited ({estimator.returncode}); see {args.logs / 'estimator.log'}")
             time.sleep(0.1)
-        print(summary(listener.rows), flush=True)
+        with listener.lock:  # not in the middle of the executor thread printing the last row
+            print(summary(listener.rows), flush=True)
         status = 0 if listener.rows else 1
     except RuntimeError as exc:
         print(f"demo: {exc}", file=sys.stderr)
