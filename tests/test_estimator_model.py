@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ad_estimator.images import ImageRejected, image_to_mask
-from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError, frame_inputs
+from ad_estimator.model import (BUNDLED_MODEL, SIMULATOR_MASK_SIZE, EstimatorModel, ModelError, as_simulator_mask,
+                                frame_inputs)
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
 
 
@@ -99,6 +100,47 @@ def test_prepare_resizes_any_size_with_area_interpolation(models):
     assert out.shape == (32, 32) and out.dtype == np.float32
     assert np.all(out[:16] == 1.0) and np.all(out[16:] == 0.0)
     assert model.prepare(np.full((7, 300), 255, np.uint8)).shape == (32, 32)
+
+
+def camera_masks(seed: int, size: tuple[int, int] = (512, 512)) -> np.ndarray:
+    """Full-resolution binary masks: discs of random centres and radii, with edges at sub-pixel
+    offsets of the 128x128 grid, so that area averages land on both sides of one half."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[: size[0], : size[1]]
+    masks = []
+    for _ in range(4):
+        cy, cx, r = rng.uniform(0.3, 0.7) * size[0], rng.uniform(0.3, 0.7) * size[1], rng.uniform(20, 150)
+        masks.append(np.where((y - cy) ** 2 + (x - cx) ** 2 <= r * r, 255, 0).astype(np.uint8))
+    return np.stack(masks)
+
+
+def test_simulator_mask_size_is_the_simulators():
+    from ad_sim.render import MASK_SIZE
+
+    assert SIMULATOR_MASK_SIZE == MASK_SIZE
+
+
+def test_camera_masks_become_the_simulators_masks(models):
+    """A 512x512 camera mask reaches the model exactly as the simulator's own downsampling (the
+    Warp kernel that made every training mask) would have made it, for both input sizes."""
+    from ad_sim.render import downsample
+
+    full = camera_masks(0)
+    simulator = downsample(full)
+    for mask, expected in zip(full, simulator):
+        got = as_simulator_mask(mask)
+        assert got.dtype == np.uint8 and np.array_equal(got, expected)
+        assert 0 < (expected == 255).mean() < 1
+        for model in models.values():
+            assert np.array_equal(model.prepare(mask), model.prepare(expected))
+
+
+def test_any_camera_size_gives_a_binary_simulator_mask():
+    for mask in camera_masks(1, (480, 640)):
+        got = as_simulator_mask(mask)
+        assert got.shape == (SIMULATOR_MASK_SIZE, SIMULATOR_MASK_SIZE) and set(np.unique(got)) <= {0, 255}
+        # the same object: coverage within one edge pixel's worth of the original fraction
+        assert abs((got == 255).mean() - (mask == 255).mean()) < 0.02
 
 
 def test_missing_model_names_the_file(tmp_path):

@@ -54,6 +54,23 @@ def frame_inputs(previous_frames: int) -> tuple[str, ...]:
     return ("mask", *(f"previous_mask_{k}" if k > 1 else "previous_mask" for k in range(1, previous_frames + 1)))
 
 
+# The size of the simulator's masks (ad_sim.render.MASK_SIZE; a test keeps the two equal), the size
+# every model was trained from.
+SIMULATOR_MASK_SIZE = 128
+
+
+def as_simulator_mask(mask: np.ndarray) -> np.ndarray:
+    """A binary uint8 mask (0/255) of any size -> the 128x128 0/255 mask the simulator would have
+    made of it from its 512x512 render (ad_sim.render.downsample): the area average, inside where at
+    least half of the pixel is covered. A camera's full-resolution mask would otherwise reach the
+    model with grey edges that it never saw in training."""
+    size = (SIMULATOR_MASK_SIZE, SIMULATOR_MASK_SIZE)
+    if mask.shape == size:
+        return mask
+    covered = cv2.resize(mask.astype(np.float32), size[::-1], interpolation=cv2.INTER_AREA)
+    return np.where(covered >= 127.5, 255, 0).astype(np.uint8)
+
+
 @dataclass(frozen=True)
 class ParameterRange:
     """Sampling range of one parameter; the model predicts values normalised to [0, 1] over it."""
@@ -302,10 +319,10 @@ class EstimatorModel:
         return self.info.model_id
 
     def prepare(self, mask: np.ndarray) -> np.ndarray:
-        """Binary uint8 mask (0/255) of any size -> float32 (H, W) in [0, 1] at the model's input size.
-
-        Area interpolation, as the simulator's 512 -> 128 downsampling (SPEC 6)."""
+        """Binary uint8 mask (0/255) of any size -> float32 (H, W) in [0, 1] at the model's input size:
+        first the simulator's mask (as_simulator_mask), then area interpolation, as training does."""
         h, w = self.info.input_size
+        mask = as_simulator_mask(mask)
         if mask.shape != (h, w):
             mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_AREA)
         return mask.astype(np.float32) * np.float32(1.0 / 255.0)

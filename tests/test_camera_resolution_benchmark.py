@@ -1,0 +1,23 @@
+"""benchmarks/camera_resolution.py, one real run on the CPU (warp simulation and rendering at both
+resolutions, the bundled model in onnxruntime): a 512x512 camera gives the estimates of the
+simulator's own 128x128 masks."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_a_512_camera_gives_the_estimates_of_the_simulators_masks(tmp_path):
+    out = tmp_path / "camera.json"
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "camera_resolution.py"), "--instances", "1",
+                             "--size", "tiny", "--json", str(out)], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    figures = json.loads(out.read_text())
+    assert figures["same_family"] == 1.0 and figures["regl1_between_estimates"] == 0.0
+    assert len(figures["setup"]["episodes"]) == 3
+    low, high = figures["results"].values()
+    assert low == high and low["regl1"] is not None
+    assert "| 512x512 camera |" in result.stdout
