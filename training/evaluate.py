@@ -58,6 +58,12 @@ def write_evaluation(by_frames: dict[int, Predictions], out: str | Path, title: 
     return results
 
 
+def print_results(results: dict, title: str, out: str | Path, predictions: bool = True) -> None:
+    """The paper table (the full clip and the temporal-OOD rows) and where the report went."""
+    print(format_table({k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}, title))
+    print(f"report: {Path(out) / 'report.md'}" + (f"  predictions: {Path(out) / 'predictions.json'}" if predictions else ""))
+
+
 def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, out: str | Path | None,
                    title: str | None = None, progress: bool = True, threads: int = 1,
                    frames: tuple[int, ...] = FRAMES_SCORED, record: bool = True) -> dict:
@@ -72,9 +78,7 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
     results = write_evaluation(by_frames, out, title, {"model_id": model.model_id, "model_path": str(model_path)})
     if record:
         print(f"recorded in {update_model_metrics(model_path, {'evaluation': {Path(bags).name: summary(results)}})}")
-    table_rows = {k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}
-    print(format_table(table_rows, title))
-    print(f"report: {Path(out) / 'report.md'}  predictions: {Path(out) / 'predictions.json'}")
+    print_results(results, title, out)
     return results
 
 
@@ -160,8 +164,7 @@ def run_report(args) -> dict:
         results = write_report(by_frames, args.out, title)
     except OSError as exc:
         raise ValueError(f"cannot write the report to {args.out} ({exc.strerror or exc}); pass another --out") from None
-    print(format_table({k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}, title))
-    print(f"report: {Path(args.out) / 'report.md'}")
+    print_results(results, title, args.out, predictions=False)
     return results
 
 

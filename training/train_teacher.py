@@ -10,12 +10,12 @@ from torch.utils.data import Dataset as TorchDataset
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
-from ad_estimator.metrics import Predictions, format_table
+from ad_estimator.metrics import Predictions
 from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
 from training import data
 from training.engine import (BEST, SELECT_METRICS, FitConfig, fit, init_runtime, load_checkpoint, main_first,
                              seed_everything, wants_on_device)
-from training.evaluate import write_evaluation
+from training.evaluate import print_results, write_evaluation
 from training.models.common import task_loss
 from training.models.teacher import TEACHER_PRESETS, Teacher, TeacherConfig
 
@@ -238,6 +238,5 @@ def run_eval(args) -> dict:
         predictions = teacher_predictions(teacher, ds, device, args.batch_size)
     title = args.title or f"teacher {args.teacher} on {args.bags}"
     results = write_evaluation({FRAME_COUNT: predictions}, args.out, title, {"teacher": str(args.teacher)})
-    print(format_table(results, title))
-    print(f"report: {Path(args.out) / 'report.md'}  predictions: {Path(args.out) / 'predictions.json'}")
+    print_results(results, title, args.out)
     return results
