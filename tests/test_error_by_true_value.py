@@ -198,7 +198,7 @@ def test_report_command_rebuilds_the_report_of_saved_predictions(tmp_path, capsy
 
 
 @pytest.mark.parametrize("content, message", [
-    (None, "no such file"),
+    (None, "does not exist"),
     ("{not json", "is not valid JSON"),
     ('[1, 2]', 'has no "frames" object'),
     ('{"model_id": "m"}', 'has no "frames" object'),

@@ -7,14 +7,13 @@ scores nothing again, and reports in the paper's column layout (ad_estimator.met
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import textwrap
 from pathlib import Path
 
 import numpy as np
 
-from ad_estimator.metrics import json_text, markdown_table, table_cell, table_labels, table_values
+from ad_estimator.metrics import json_text, markdown_table, read_frames_json, table_cell, table_labels, table_values
 from ad_sim.materials import FRAME_COUNT
 
 
@@ -44,16 +43,7 @@ def read_run(path: Path, frames: int, which: str) -> tuple[Path, dict[str, float
     qualified) of a metrics file or of the metrics.json in a report folder."""
     file = path / "metrics.json" if path.is_dir() else path
     hint = "pass a metrics.json written by python -m training evaluate, or its report folder"
-    try:
-        metrics = json.loads(file.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{file} does not exist; {hint}") from None
-    except OSError as exc:
-        raise ValueError(f"{file} cannot be read ({exc.strerror}); {hint}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{file} is not valid JSON ({exc}); {hint}") from None
-    if not isinstance(metrics, dict) or not isinstance(metrics.get("frames"), dict):
-        raise ValueError(f"{file} has no \"frames\" object, so it is not a metrics file; {hint}")
+    metrics = read_frames_json(file, "a metrics file", hint)
     if str(frames) not in metrics["frames"]:
         raise ValueError(f"{file} has no entry for {frames} frames (it has {', '.join(metrics['frames'])}); choose "
                          "one of those with --frames")

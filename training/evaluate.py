@@ -14,7 +14,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ad_estimator.metrics import (PARAMETER_NAMES, TEMPORAL_OOD_FRAMES, FrameCounts, Predictions, format_table,
-                                  in_metric_order, json_text, write_report)
+                                  in_metric_order, json_text, read_frames_json, write_report)
 from ad_estimator.model import EstimatorModel
 from ad_estimator.window import clip_output
 from ad_sim.materials import FRAME_COUNT
@@ -119,16 +119,7 @@ def read_predictions(path: str | Path) -> tuple[dict[int, Predictions], dict]:
             "`ros2 run ad_estimator evaluate`")
     if path.is_dir():
         raise ValueError(f"{path} is a folder; pass the predictions.json inside it")
-    if not path.is_file():
-        raise ValueError(f"{path}: no such file; {what}")
-    try:
-        saved = json.loads(path.read_text())
-    except OSError as exc:
-        raise ValueError(f"{path} cannot be read ({exc.strerror}); {what}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path} is not valid JSON ({exc}); {what}") from None
-    if not isinstance(saved, dict) or not isinstance(saved.get("frames"), dict):
-        raise ValueError(f'{path} has no "frames" object ({{"25": [episode records], ...}}); {what}')
+    saved = read_frames_json(path, 'a predictions file ({"25": [episode records], ...})', what)
     names = saved.get("parameter_names") or PARAMETER_NAMES
     by_frames = {}
     for k, records in saved["frames"].items():

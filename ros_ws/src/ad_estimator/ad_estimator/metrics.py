@@ -268,6 +268,26 @@ def table_columns() -> list[tuple[str, str, str | None]]:
     return cols
 
 
+def read_frames_json(path: str | Path, what: str, hint: str) -> dict:
+    """A JSON file keyed by number of frames ({"frames": {"25": ...}, ...}: the metrics.json and
+    predictions.json that evaluations write). Every way it can be unusable is a one-line ValueError
+    naming the file, what it should be (`what`, e.g. "a metrics file") and what to pass (`hint`)."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder; {hint}")
+    try:
+        saved = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{path} does not exist; {hint}") from None
+    except OSError as exc:
+        raise ValueError(f"{path} cannot be read ({exc.strerror}); {hint}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not valid JSON ({exc}); {hint}") from None
+    if not isinstance(saved, dict) or not isinstance(saved.get("frames"), dict):
+        raise ValueError(f'{path} has no "frames" object, so it is not {what}; {hint}')
+    return saved
+
+
 def json_text(obj, indent: int = 2) -> str:
     """Strict JSON (what jq and browsers read): NaN, meaning "no clip qualified", becomes null."""
 
