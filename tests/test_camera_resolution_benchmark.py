@@ -1,6 +1,6 @@
 """benchmarks/camera_resolution.py, one real run on the CPU (warp simulation and rendering at both
-resolutions, the bundled model in onnxruntime): a 512x512 camera gives the estimates of the
-simulator's own 128x128 masks."""
+resolutions, the bundled model in onnxruntime): a 512x512 camera, and a 4:3 one that sees the whole
+object, give the estimates of the simulator's own 128x128 masks."""
 
 import json
 import subprocess
@@ -16,8 +16,11 @@ def test_a_512_camera_gives_the_estimates_of_the_simulators_masks(tmp_path):
                              "--size", "tiny", "--json", str(out)], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     figures = json.loads(out.read_text())
-    assert figures["same_family"] == 1.0 and figures["regl1_between_estimates"] == 0.0
     assert len(figures["setup"]["episodes"]) == 3
-    low, high = figures["results"].values()
-    assert low == high and low["regl1"] is not None
-    assert "| 512x512 camera |" in result.stdout
+    assert figures["against_simulator_masks"]["512x512 camera"] == {"same_family": 1.0, "regl1_between_estimates": 0.0}
+    # These objects stay inside the 4:3 view, so letterboxing it gives the square camera's estimates too.
+    assert figures["object_pixels_outside_4_3"] == 0.0
+    assert figures["against_simulator_masks"]["512x384 camera (4:3)"]["regl1_between_estimates"] == 0.0
+    simulator, square, four_three = figures["results"].values()
+    assert simulator == square == four_three and simulator["regl1"] is not None
+    assert "| 512x384 camera (4:3) | 1.000 | 0.000 |" in result.stdout

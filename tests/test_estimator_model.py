@@ -139,8 +139,31 @@ def test_any_camera_size_gives_a_binary_simulator_mask():
     for mask in camera_masks(1, (480, 640)):
         got = as_simulator_mask(mask)
         assert got.shape == (SIMULATOR_MASK_SIZE, SIMULATOR_MASK_SIZE) and set(np.unique(got)) <= {0, 255}
-        # the same object: coverage within one edge pixel's worth of the original fraction
-        assert abs((got == 255).mean() - (mask == 255).mean()) < 0.02
+        # the same object, letterboxed into the square: its area shrinks by the padding, 480/640
+        assert abs((got == 255).mean() - 0.75 * (mask == 255).mean()) < 0.02
+
+
+def test_a_camera_that_is_not_square_keeps_the_objects_proportions():
+    """A 4:3 (or 3:4) view of the same scene, cut from a square render where the cut bands are
+    empty, gives exactly the square render's simulator mask: letterboxed, not stretched."""
+    from ad_sim.render import downsample
+
+    checked = 0
+    for mask in camera_masks(2):
+        rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        expected = downsample(mask[None])[0]
+        if rows[0] >= 64 and rows[-1] < 448:
+            assert np.array_equal(as_simulator_mask(mask[64:448]), expected)
+            checked += 1
+        if cols[0] >= 64 and cols[-1] < 448:
+            assert np.array_equal(as_simulator_mask(mask[:, 64:448]), expected)
+            checked += 1
+    assert checked >= 2
+    disc = np.zeros((384, 512), np.uint8)
+    disc[np.hypot(*np.mgrid[-192:192, -256:256]) < 100] = 255
+    got = as_simulator_mask(disc)
+    rows, cols = np.flatnonzero(got.any(axis=1)), np.flatnonzero(got.any(axis=0))
+    assert abs(len(rows) - len(cols)) <= 1  # a disc stays round
 
 
 def test_missing_model_names_the_file(tmp_path):

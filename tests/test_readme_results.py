@@ -252,3 +252,25 @@ def test_experiments_error_by_true_value_table_is_the_saved_predictions():
         s, t = shipped[family][names[short]], teacher[family][names[short]]
         assert values[:5] == [table_cell(v) for v in (s["all"], s["correlation"], t["all"], t["correlation"],
                                                        s["constant_guess"])], (family, short)
+
+
+def test_estimator_doc_camera_table_is_the_benchmarks_files():
+    """docs/estimator.md's camera table: the figures of benchmarks/camera_resolution.py's saved runs."""
+    def load(name):
+        return json.loads((ROOT / "docs" / "results" / f"camera_resolution_paper_unseen_20{name}.json").read_text())
+
+    now, stretched, before = load(""), load("_stretched"), load("_before_fix")
+    rows = {cells(line)[0]: cells(line)[1:] for line in (ROOT / "docs" / "estimator.md").read_text().splitlines()
+            if line.startswith("| 512x")}
+    four_three = "512x384 camera (4:3)"
+    assert rows["512x512"] == [
+        f"RegL1 {before['results']['512x512 camera']['regl1']:.3f}; estimates "
+        f"{before['regl1_between_estimates']:.3f} apart from the simulator masks'",
+        f"RegL1 {now['results']['512x512 camera']['regl1']:.3f}; identical"]
+    assert now["against_simulator_masks"]["512x512 camera"]["regl1_between_estimates"] == 0.0
+    old, new = (f["against_simulator_masks"][four_three] for f in (stretched, now))
+    assert rows["512x384 (4:3)"] == [
+        f"RegL1 {stretched['results'][four_three]['regl1']:.3f}; same family {old['same_family']:.3f}; "
+        f"{old['regl1_between_estimates']:.3f} apart",
+        f"RegL1 {now['results'][four_three]['regl1']:.3f}; same family {new['same_family']:.3f}; "
+        f"{new['regl1_between_estimates']:.3f} apart"]
