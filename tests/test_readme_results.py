@@ -274,3 +274,18 @@ def test_estimator_doc_camera_table_is_the_benchmarks_files():
         f"{old['regl1_between_estimates']:.3f} apart",
         f"RegL1 {now['results'][four_three]['regl1']:.3f}; same family {new['same_family']:.3f}; "
         f"{new['regl1_between_estimates']:.3f} apart"]
+
+
+def test_estimator_doc_framing_table_is_the_benchmarks_file():
+    now = json.loads((ROOT / "docs" / "results" / "camera_resolution_paper_unseen_20.json").read_text())
+    rows = {cells(line)[0]: cells(line)[1:] for line in (ROOT / "docs" / "estimator.md").read_text().splitlines()
+            if line.startswith(("| as in training", "| object "))}
+    def phi(result):
+        return f"{result['families']['sand']['correct']['friction_angle']:.2f}°"
+
+    simulator = now["results"]["128x128 (simulator)"]
+    assert rows["as in training"] == [f"{simulator['regl1']:.3f}", "", "", phi(simulator)]
+    for framing in ("object 1.25x larger", "object 0.8x smaller"):
+        result, against = now["results"][framing], now["against_simulator_masks"][framing]
+        assert rows[framing] == [f"{result['regl1']:.3f}", f"{against['same_family']:.3f}",
+                                 f"{against['regl1_between_estimates']:.3f}", phi(result)]
