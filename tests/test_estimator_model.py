@@ -122,7 +122,7 @@ def test_simulator_mask_size_is_the_simulators():
 
 def test_camera_masks_become_the_simulators_masks(models):
     """A 512x512 camera mask reaches the model exactly as the simulator's own downsampling (the
-    Warp kernel that made every training mask) would have made it, for both input sizes."""
+    Warp kernel that made every training mask) would have made it, for both model kinds."""
     from ad_sim.render import downsample
 
     full = camera_masks(0)
@@ -133,6 +133,15 @@ def test_camera_masks_become_the_simulators_masks(models):
         assert 0 < (expected == 255).mean() < 1
         for model in models.values():
             assert np.array_equal(model.prepare(mask), model.prepare(expected))
+
+
+def test_any_binary_encoding_counts_non_zero_pixels_as_the_kernel_does():
+    from ad_sim.render import downsample
+
+    full = camera_masks(3)
+    for mask, expected in zip(full, downsample(full)):
+        for binary in (mask == 255, (mask == 255).astype(np.uint8), np.where(mask == 255, 200, 0).astype(np.uint8)):
+            assert np.array_equal(as_simulator_mask(binary), expected)
 
 
 def test_any_camera_size_gives_a_binary_simulator_mask():
@@ -396,6 +405,7 @@ class UntouchableData(types.SimpleNamespace):
 
 @pytest.mark.parametrize("fields,kind", [
     (dict(height=100_000, width=100_000, encoding="mono8", step=100_000), "too_large"),
+    (dict(height=1, width=20_000, encoding="mono8", step=20_000), "too_large"),  # letterboxed: 20000^2
     (dict(height=10, width=10, encoding="32FC1", step=40), "encoding"),
     (dict(height=10, width=10, encoding="rgb8", step=10), "malformed"),
     (dict(height=0, width=10, encoding="mono8", step=10), "empty"),

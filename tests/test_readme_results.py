@@ -285,7 +285,7 @@ def test_estimator_doc_framing_table_is_the_benchmarks_file():
 
     simulator = now["results"]["128x128 (simulator)"]
     assert rows["as in training"] == [f"{simulator['regl1']:.3f}", "", "", phi(simulator)]
-    for framing in ("object 1.25x larger", "object 0.8x smaller"):
+    for framing in ("object 1.33x larger", "object 0.8x smaller"):
         result, against = now["results"][framing], now["against_simulator_masks"][framing]
         assert rows[framing] == [f"{result['regl1']:.3f}", f"{against['same_family']:.3f}",
                                  f"{against['regl1_between_estimates']:.3f}", phi(result)]

@@ -34,8 +34,10 @@ def check_header(height: int, width: int, encoding: str, step: int, max_pixels: 
     """Validate header fields only; returns (bytes per channel, channels)."""
     if height <= 0 or width <= 0:
         raise ImageRejected("empty", f"empty image {width}x{height}")
-    if height * width > max_pixels:
-        raise ImageRejected("too_large", f"image {width}x{height} exceeds max_image_pixels={max_pixels}")
+    side = max(height, width)
+    if side * side > max_pixels:  # a mask is letterboxed to a square before the model (model.as_simulator_mask)
+        shape = f"image {width}x{height}" + ("" if height == width else f" (letterboxed to {side}x{side})")
+        raise ImageRejected("too_large", f"{shape} exceeds max_image_pixels={max_pixels}")
     if encoding not in ENCODINGS:
         raise ImageRejected("encoding", f"unsupported encoding {encoding!r}; send a mask as mono8 "
                                         f"(accepted: {', '.join(ENCODINGS)})")

@@ -60,9 +60,9 @@ SIMULATOR_MASK_SIZE = 128
 
 
 def as_simulator_mask(mask: np.ndarray) -> np.ndarray:
-    """A binary uint8 mask (0/255) of any size -> the 128x128 0/255 mask the simulator would have
-    made of it from its 512x512 render (ad_sim.render.downsample): the area average, inside where at
-    least half of the pixel is covered. A camera's full-resolution mask would otherwise reach the
+    """A binary mask (non-zero = object) of any size -> the 128x128 0/255 mask the simulator would
+    have made of it from its 512x512 render (ad_sim.render.downsample): the area average, inside
+    where at least half of the pixel is covered. A 128x128 mask is taken as it is. A camera's full-resolution mask would otherwise reach the
     model with grey edges that it never saw in training. A mask that is not square is first centred
     on a square background (letterboxed): the simulator's cameras are square, and stretching would
     change the object's proportions, which is what the model reads materials from."""
@@ -70,14 +70,12 @@ def as_simulator_mask(mask: np.ndarray) -> np.ndarray:
     if mask.shape == size:
         return mask
     height, width = mask.shape
-    if height != width:
-        side = max(height, width)
-        square = np.zeros((side, side), mask.dtype)
-        top, left = (side - height) // 2, (side - width) // 2
-        square[top : top + height, left : left + width] = mask
-        mask = square
-    covered = cv2.resize(mask.astype(np.float32), size[::-1], interpolation=cv2.INTER_AREA)
-    return np.where(covered >= 127.5, 255, 0).astype(np.uint8)
+    side = max(height, width)  # images.check_header bounds side * side by max_image_pixels
+    inside = np.zeros((side, side), np.float32)
+    top, left = (side - height) // 2, (side - width) // 2
+    inside[top : top + height, left : left + width] = mask != 0  # the kernel counts non-zero pixels
+    covered = cv2.resize(inside, size[::-1], interpolation=cv2.INTER_AREA)
+    return np.where(covered >= 0.5, 255, 0).astype(np.uint8)
 
 
 @dataclass(frozen=True)

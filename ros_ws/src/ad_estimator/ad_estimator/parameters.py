@@ -29,7 +29,7 @@ PARAMETERS = {
                                        "frame count). From 15 frames on the bundled model is nearly as accurate as "
                                        "from 25; from fewer it is much less (temporal OOD in models/MODEL_CARD.md "
                                        "and the README)"),
-    "max_image_pixels": (MAX_IMAGE_PIXELS, "larger images are rejected from their header alone"),
+    "max_image_pixels": (MAX_IMAGE_PIXELS, "images over this many pixels, counted as the square they are letterboxed to, are rejected from their header alone"),
     "mask_threshold": (DEFAULT_THRESHOLD, "pixel > threshold (of 255, scaled for 16 bit) is object"),
     "queue_size": (64, "frames waiting for the worker; more are dropped and counted"),
     "idle_flush": (DEFAULT_IDLE_FLUSH, "seconds without input after which pending slots settle (0: never)"),
