@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ad_estimator.images import ImageRejected, image_to_mask
-from ad_estimator.model import (BUNDLED_MODEL, SIMULATOR_MASK_SIZE, EstimatorModel, ModelError, as_simulator_mask,
-                                frame_inputs)
+from ad_estimator.model import (BUNDLED_MODEL, SIMULATOR_MASK_SIZE, TRAINED_EXTENT, EstimatorModel, ModelError,
+                                as_simulator_mask, frame_inputs, object_extent)
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
 
 
@@ -173,6 +173,16 @@ def test_a_camera_that_is_not_square_keeps_the_objects_proportions():
     got = as_simulator_mask(disc)
     rows, cols = np.flatnonzero(got.any(axis=1)), np.flatnonzero(got.any(axis=0))
     assert abs(len(rows) - len(cols)) <= 1  # a disc stays round
+
+
+def test_object_extent_is_the_larger_side_in_the_simulator_mask():
+    box = np.zeros((512, 512), np.uint8)
+    box[100:254, 200:277] = 255  # 154 x 77 px of 512: the larger side is 0.3 of the image side
+    assert abs(object_extent(box) - 154 / 512) <= 1 / 128
+    assert object_extent(np.zeros((512, 512), np.uint8)) == 0.0
+    four_three = box[64:448]  # 512 wide, 384 high: letterboxed, so still a fraction of 512
+    assert abs(object_extent(four_three) - 154 / 512) <= 1 / 128
+    assert TRAINED_EXTENT[0] < object_extent(falling_masks()[0]) < TRAINED_EXTENT[1]
 
 
 def test_missing_model_names_the_file(tmp_path):

@@ -296,6 +296,30 @@ def test_oversized_frames_never_reach_the_worker(model_paths):
             node.destroy_node()
 
 
+def disc(side: int, diameter: float, height: int | None = None) -> np.ndarray:
+    """A mask with a centred disc `diameter` (a fraction of `side`) across."""
+    yy, xx = np.mgrid[: height or side, :side]
+    return np.where(np.hypot(yy - (height or side) / 2, xx - side / 2) <= diameter * side / 2, 255, 0).astype(np.uint8)
+
+
+def test_episodes_framed_unlike_training_are_counted(model_paths):
+    """An episode whose first frame shows the object much larger or smaller than any training clip
+    is counted (and warned about, throttled); one framed as in training is not."""
+    with ros_context() as (context, _):
+        node = EstimatorNode(context=context, parameter_overrides=[
+            Parameter("model_path", value=str(model_paths["streaming"]))])
+        try:
+            stamp = 10**9
+            for diameter, off in ((0.3, 0), (0.8, 1), (0.3, 1), (0.05, 2)):
+                stamp += 10**9  # a gap: a new episode
+                for k in range(3):
+                    node.handle_frame(image_msg(disc(512, diameter), stamp + k * DT), time.perf_counter())
+                stats = node.statistics()
+                assert (stats["off_framing"], stats["errors"]) == (off, 0), diameter
+        finally:
+            node.destroy_node()
+
+
 def test_valid_fuzzed_frames_produce_estimates(fuzz_node):
     """Well-formed frames of random sizes and stamps, straight into the handler: estimates come out.
     (Also: the worker has processed every fuzzed frame queued before without an error.)"""

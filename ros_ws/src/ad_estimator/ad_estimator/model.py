@@ -78,6 +78,22 @@ def as_simulator_mask(mask: np.ndarray) -> np.ndarray:
     return np.where(covered >= 0.5, 255, 0).astype(np.uint8)
 
 
+# The object's extent in an episode's first simulator mask (object_extent) over the 90 clips of the
+# `small` seen split, whose cameras are drawn as training's are: 0.16 to 0.53 (median 0.31).
+# Outside this range, a camera frames objects unlike any training clip (docs/estimator.md, "Images").
+TRAINED_EXTENT = (0.15, 0.55)
+
+
+def object_extent(mask: np.ndarray) -> float:
+    """The object's larger side (height or width of its bounding box) in the simulator mask of
+    `mask`, as a fraction of the image side; 0 without an object."""
+    inside = as_simulator_mask(mask) > 0
+    rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+    if not len(rows):
+        return 0.0
+    return max(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1) / SIMULATOR_MASK_SIZE
+
+
 @dataclass(frozen=True)
 class ParameterRange:
     """Sampling range of one parameter; the model predicts values normalised to [0, 1] over it."""

@@ -37,7 +37,7 @@ from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
 from ad_estimator.images import ImageRejected, check_header, image_to_mask
-from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
+from ad_estimator.model import BUNDLED_MODEL, TRAINED_EXTENT, Estimate, EstimatorModel, ModelError, object_extent
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
 from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
 
@@ -105,7 +105,8 @@ class EstimatorNode(Node):
         self.idle_flush = p["idle_flush"]
 
         self.queue: queue.Queue = queue.Queue(maxsize=p["queue_size"])
-        self.counters = dict(received=0, rejected=0, dropped=0, processed=0, published=0, errors=0)
+        self.counters = dict(received=0, rejected=0, dropped=0, processed=0, published=0, errors=0, off_framing=0)
+        self._framing_checked = 0  # episodes whose first frame's framing was checked
         self.latencies: deque[float] = deque(maxlen=1000)  # arrival -> publish, seconds
         self.model_times: deque[float] = deque(maxlen=1000)
         self._period_counts = dict(received=0, published=0, dropped=0, rejected=0)
@@ -188,6 +189,9 @@ class EstimatorNode(Node):
         encode_time = [0.0]
 
         def encode(frame, earlier):
+            if self.window.episodes != self._framing_checked:  # the episode's first frame
+                self._framing_checked = self.window.episodes
+                self._check_framing(frame)
             start = time.perf_counter()
             feature = self.model.encode(frame, earlier)
             encode_time[0] = time.perf_counter() - start
@@ -196,6 +200,17 @@ class EstimatorNode(Node):
         outputs = self.window.add(stamp, mask, encode)
         self._count("processed")
         return [self._publish(out, msg.header.frame_id, arrival, encode_time[0]) for out in outputs]
+
+    def _check_framing(self, frame) -> None:
+        """Warn when an episode starts with the object framed unlike any training clip."""
+        extent = object_extent(frame)
+        low, high = TRAINED_EXTENT
+        if not low <= extent <= high:
+            self._count("off_framing")
+            self.warn("framing", f"an episode starts with the object spanning {extent:.0%} of the image side; "
+                                 f"training objects spanned {low:.0%} to {high:.0%} (the longer image side covering "
+                                 "about 1.4 m at the object): frame the camera alike, or expect larger errors "
+                                 "(docs/estimator.md, Images)")
 
     def _publish(self, out: WindowOutput, frame_id: str, arrival: float | None, encode_time: float) -> MaterialEstimate:
         estimate = self.model.predict(out.features, out.valid)
@@ -328,6 +343,7 @@ class EstimatorNode(Node):
             "frames_received": str(stats["received"]), "frames_rejected": str(stats["rejected"]),
             "frames_dropped": str(stats["dropped"]), "estimates_published": str(stats["published"]),
             "processing_errors": str(stats["errors"]), "queue_depth": str(stats["queue_depth"]),
+            "episodes_off_framing": str(stats["off_framing"]),
             "window_restarts": str(sum(v for k, v in stats["window_restarts"].items() if k != "first")),
         }
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
