@@ -6,8 +6,8 @@ at half coverage (ad_sim.render.downsample). A robot's segmentation arrives at i
 resolution, and the estimator brings it to the model's input size (EstimatorModel.prepare). This
 simulates unseen benchmark instances once, keeps both the 128x128 masks and the 512x512 renders
 they came from, estimates each instance from the 128x128 masks, the 512x512 renders, a 4:3 crop of
-them, and two framings with the object larger and smaller than in training, through the
-estimator's runtime. It reports the paper table for each camera and how close its estimates are to
+them, two framings with the object larger and smaller than in training, and the renders with their
+boundary moved out or in by 2 px (a biased segmenter), through the estimator's runtime. It reports the paper table for each camera and how close its estimates are to
 those from the simulator's masks.
 
     python benchmarks/camera_resolution.py --instances 4              # CPU, about 20 s
@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,6 +41,12 @@ from ad_sim.materials import FAMILIES, FRAME_INTERVAL  # noqa: E402
 CROP = 64  # rows cut from the top and from the bottom of the 512x512 render for the 4:3 camera
 ZOOM_IN = 64  # pixels cut from each side of the render: 384/512, the object 1.33x larger (factor 3: exact)
 ZOOM_OUT = 64  # pixels of background added on each side: 512/640, the object 0.8x the size
+
+
+def morphed(masks: np.ndarray, operation) -> np.ndarray:
+    """Each frame dilated or eroded (cv2.dilate, cv2.erode) by a disc of radius 2 px."""
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    return np.stack([operation(frame, disc) for frame in masks])
 
 
 def as_message(instance):
@@ -82,7 +89,10 @@ def main(argv=None) -> int:
                "512x512 camera": lambda ep: ep.masks_full[0],
                "512x384 camera (4:3)": lambda ep: ep.masks_full[0][:, CROP:-CROP],
                "object 1.33x larger": lambda ep: ep.masks_full[0][:, ZOOM_IN:-ZOOM_IN, ZOOM_IN:-ZOOM_IN],
-               "object 0.8x smaller": lambda ep: np.pad(ep.masks_full[0], ((0, 0), (ZOOM_OUT,) * 2, (ZOOM_OUT,) * 2))}
+               "object 0.8x smaller": lambda ep: np.pad(ep.masks_full[0], ((0, 0), (ZOOM_OUT,) * 2, (ZOOM_OUT,) * 2)),
+               # A segmenter whose boundary is biased outwards or inwards by 2 render pixels (half a mask pixel).
+               "mask grown by 2 px of 512": lambda ep: morphed(ep.masks_full[0], cv2.dilate),
+               "mask shrunk by 2 px of 512": lambda ep: morphed(ep.masks_full[0], cv2.erode)}
     stamps = [(round(k * FRAME_INTERVAL * 1e9), None) for k in range(model.info.frame_count)]
     by_camera = {camera: to_metrics([predict_episode(model, camera, as_message(inst), stamps, len(stamps),
                                                      masks=list(masks(ep))) for inst, ep in zip(chosen, episodes)],
