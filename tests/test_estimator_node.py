@@ -316,6 +316,9 @@ def test_episodes_framed_unlike_training_are_counted(model_paths):
                     node.handle_frame(image_msg(disc(512, diameter), stamp + k * DT), time.perf_counter())
                 stats = node.statistics()
                 assert (stats["off_framing"], stats["errors"]) == (off, 0), diameter
+            # The clip service checks its clip the same way, and still answers.
+            clip = [image_msg(disc(512, 0.8), stamp + 10**9 + k * DT) for k in range(3)]
+            assert node.estimate_clip(clip).material and node.statistics()["off_framing"] == 3
         finally:
             node.destroy_node()
 

@@ -301,6 +301,7 @@ class EstimatorNode(Node):
                 masks.append(image_to_mask(frame, self.max_pixels, self.threshold))
             except ImageRejected as exc:
                 raise ValueError(f"frame {i}: {exc}") from exc
+        self._check_framing(masks[0])
         stamps = [stamp_to_ns(f.header.stamp.sec, f.header.stamp.nanosec) for f in frames]
         out = clip_output(stamps, masks, self.model.encode, self.info.frame_interval, self.info.frame_count,
                           slot_tolerance=self.slot_tolerance, history=self.info.previous_frames)
