@@ -7,7 +7,8 @@ resolution, and the estimator brings it to the model's input size (EstimatorMode
 simulates unseen benchmark instances once, keeps both the 128x128 masks and the 512x512 renders
 they came from, estimates each instance from the 128x128 masks, the 512x512 renders, a 4:3 crop of
 them, two framings with the object larger and smaller than in training, and the renders with their
-boundary moved out or in by 2 px (a biased segmenter), through the estimator's runtime. It reports the paper table for each camera and how close its estimates are to
+boundary moved out or in by 2 px (a biased segmenter), and the simulator's masks with frames lost,
+through the estimator's runtime. It reports the paper table for each camera and how close its estimates are to
 those from the simulator's masks.
 
     python benchmarks/camera_resolution.py --instances 4              # CPU, about 20 s
@@ -93,10 +94,24 @@ def main(argv=None) -> int:
                # A segmenter whose boundary is biased outwards or inwards by 2 render pixels (half a mask pixel).
                "mask grown by 2 px of 512": lambda ep: morphed(ep.masks_full[0], cv2.dilate),
                "mask shrunk by 2 px of 512": lambda ep: morphed(ep.masks_full[0], cv2.erode)}
-    stamps = [(round(k * FRAME_INTERVAL * 1e9), None) for k in range(model.info.frame_count)]
-    by_camera = {camera: to_metrics([predict_episode(model, camera, as_message(inst), stamps, len(stamps),
-                                                     masks=list(masks(ep))) for inst, ep in zip(chosen, episodes)],
-                                    model.info.parameter_names) for camera, masks in cameras.items()}
+    # Frames lost on the way (best-effort QoS on a busy link), from the simulator's masks: each
+    # camera's frames kept, per episode; the window leaves the lost ones' slots empty.
+    count = model.info.frame_count
+    lossy = {"every 4th frame lost": lambda i: [k for k in range(count) if k % 4 != 3],
+             "10% of frames lost at random": lambda i: [  # never the first: it starts the episode
+                 k for k, u in enumerate(np.random.default_rng([args.seed, i]).random(count)) if k == 0 or u >= 0.1]}
+    for camera in lossy:
+        cameras[camera] = cameras["128x128 (simulator)"]
+    stamps = [(round(k * FRAME_INTERVAL * 1e9), None) for k in range(count)]
+
+    def estimate(camera: str, i: int, inst, ep):
+        kept = lossy[camera](i) if camera in lossy else range(count)
+        return predict_episode(model, camera, as_message(inst), [stamps[k] for k in kept], len(kept),
+                               masks=[cameras[camera](ep)[k] for k in kept])
+
+    by_camera = {camera: to_metrics([estimate(camera, i, inst, ep) for i, (inst, ep)
+                                     in enumerate(zip(chosen, episodes))], model.info.parameter_names)
+                 for camera in cameras}
     # Object pixels a cropped camera does not see: where its estimates may rightly differ.
     def missed(camera: str) -> float:
         return float(np.mean([1 - (cameras[camera](ep) > 0).sum() / max((ep.masks_full[0] > 0).sum(), 1)

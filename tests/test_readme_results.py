@@ -279,7 +279,8 @@ def test_estimator_doc_camera_table_is_the_benchmarks_files():
 def test_estimator_doc_framing_table_is_the_benchmarks_file():
     now = json.loads((ROOT / "docs" / "results" / "camera_resolution_paper_unseen_20.json").read_text())
     rows = {cells(line)[0]: cells(line)[1:] for line in (ROOT / "docs" / "estimator.md").read_text().splitlines()
-            if line.startswith(("| as in training", "| object ", "| grown ", "| shrunk "))}
+            if line.startswith(("| as in training", "| object ", "| grown ", "| shrunk ", "| every 4th",
+                                "| 10% at"))}
     def phi(result):
         return f"{result['families']['sand']['correct']['friction_angle']:.2f}°"
 
@@ -289,7 +290,9 @@ def test_estimator_doc_framing_table_is_the_benchmarks_file():
         result, against = now["results"][framing], now["against_simulator_masks"][framing]
         assert rows[framing] == [f"{result['regl1']:.3f}", f"{against['same_family']:.3f}",
                                  f"{against['regl1_between_estimates']:.3f}", phi(result)]
-    for boundary in ("grown by 2 px of 512", "shrunk by 2 px of 512"):
-        result, against = now["results"][f"mask {boundary}"], now["against_simulator_masks"][f"mask {boundary}"]
-        assert rows[boundary] == [f"{result['regl1']:.3f}", f"{against['same_family']:.3f}",
-                                  f"{against['regl1_between_estimates']:.3f}"]
+    for row, camera in (("grown by 2 px of 512", "mask grown by 2 px of 512"),
+                        ("shrunk by 2 px of 512", "mask shrunk by 2 px of 512"),
+                        ("every 4th frame", "every 4th frame lost"), ("10% at random", "10% of frames lost at random")):
+        result, against = now["results"][camera], now["against_simulator_masks"][camera]
+        assert rows[row] == [f"{result['regl1']:.3f}", f"{against['same_family']:.3f}",
+                             f"{against['regl1_between_estimates']:.3f}"]
