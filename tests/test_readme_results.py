@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from ad_estimator.metrics import (_SHORT, Predictions, error_by_true_value, format_calibration, format_table, table_cell,
-                                  uncertainty_calibration)
+from ad_estimator.metrics import (_SHORT, Predictions, error_by_true_value, format_calibration, format_table,
+                                  table_cell, uncertainty_calibration)
 from ad_sim.materials import FRAME_COUNT
 
 ROOT = Path(__file__).resolve().parents[1]

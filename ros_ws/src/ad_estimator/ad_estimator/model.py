@@ -62,10 +62,11 @@ SIMULATOR_MASK_SIZE = 128
 def as_simulator_mask(mask: np.ndarray) -> np.ndarray:
     """A binary mask (non-zero = object) of any size -> the 128x128 0/255 mask the simulator would
     have made of it from its 512x512 render (ad_sim.render.downsample): the area average, inside
-    where at least half of the pixel is covered. A 128x128 mask is taken as it is. A camera's full-resolution mask would otherwise reach the
-    model with grey edges that it never saw in training. A mask that is not square is first centred
-    on a square background (letterboxed): the simulator's cameras are square, and stretching would
-    change the object's proportions, which is what the model reads materials from."""
+    where at least half of the pixel is covered. A 128x128 mask is taken as it is. Without the
+    threshold, a camera's full-resolution mask would reach the model with grey edges that it never
+    saw in training. A mask that is not square is first centred on a square background
+    (letterboxed): the simulator's cameras are square, and stretching would change the object's
+    proportions, which is what the model reads materials from."""
     size = (SIMULATOR_MASK_SIZE, SIMULATOR_MASK_SIZE)
     if mask.shape == size:
         return mask
