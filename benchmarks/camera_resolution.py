@@ -35,8 +35,9 @@ from ad_estimator.metrics import (Predictions, compute_metrics, json_text, markd
                                   table_cell, table_labels, table_values)
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel  # noqa: E402
 from ad_sim.episode import simulate_batch  # noqa: E402
-from ad_sim.instances import benchmark  # noqa: E402
-from ad_sim.materials import FAMILIES, FRAME_INTERVAL  # noqa: E402
+from ad_sim.messages import instance_message  # noqa: E402
+from ad_sim.instances import drawn_per_family  # noqa: E402
+from ad_sim.materials import FRAME_INTERVAL  # noqa: E402
 
 
 CROP = 64  # rows cut from the top and from the bottom of the 512x512 render for the 4:3 camera
@@ -48,12 +49,6 @@ def morphed(masks: np.ndarray, operation) -> np.ndarray:
     """Each frame dilated or eroded (cv2.dilate, cv2.erode) by a disc of radius 2 px."""
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     return np.stack([operation(frame, disc) for frame in masks])
-
-
-def as_message(instance):
-    """The fields of ad_msgs/SimInstance that the estimator's evaluation reads."""
-    return SimpleNamespace(episode_id=instance.episode_id, material=instance.material,
-                           parameter_names=list(instance.parameters), parameters=list(instance.parameters.values()))
 
 
 def main(argv=None) -> int:
@@ -72,13 +67,7 @@ def main(argv=None) -> int:
         p.error("--instances must be at least 1")
 
     model = EstimatorModel.load(args.model)
-    rng = np.random.default_rng(args.seed)
-    pool = benchmark(args.size, "unseen")
-    chosen = []
-    for family in FAMILIES:
-        of_family = [inst for inst in pool if inst.material == family]
-        chosen += [of_family[i] for i in sorted(rng.choice(len(of_family), min(args.instances, len(of_family)),
-                                                           replace=False))]
+    chosen = drawn_per_family(args.size, "unseen", args.instances, args.seed)
     print(f"simulating {len(chosen)} episodes on {args.device}", file=sys.stderr)
     episodes = simulate_batch(chosen, device=args.device, full_masks=True, views=1, progress=True)
 
@@ -95,7 +84,8 @@ def main(argv=None) -> int:
                "mask grown by 2 px of 512": lambda ep: morphed(ep.masks_full[0], cv2.dilate),
                "mask shrunk by 2 px of 512": lambda ep: morphed(ep.masks_full[0], cv2.erode)}
     # Frames lost on the way (best-effort QoS on a busy link), from the simulator's masks: each
-    # camera's frames kept, per episode; the window leaves the lost ones' slots empty.
+    # camera's frames kept, per episode. The window fills a lost frame's slot with a neighbour within
+    # slot_tolerance (default 1.0), else leaves it empty.
     count = model.info.frame_count
     lossy = {"every 4th frame lost": lambda i: [k for k in range(count) if k % 4 != 3],
              "10% of frames lost at random": lambda i: [  # never the first: it starts the episode
@@ -104,14 +94,16 @@ def main(argv=None) -> int:
         cameras[camera] = cameras["128x128 (simulator)"]
     stamps = [(round(k * FRAME_INTERVAL * 1e9), None) for k in range(count)]
 
-    def estimate(camera: str, i: int, inst, ep):
-        kept = lossy[camera](i) if camera in lossy else range(count)
-        return predict_episode(model, camera, as_message(inst), [stamps[k] for k in kept], len(kept),
-                               masks=[cameras[camera](ep)[k] for k in kept])
+    truths = [SimpleNamespace(**instance_message(ep, i, 0)) for i, ep in enumerate(episodes)]
 
-    by_camera = {camera: to_metrics([estimate(camera, i, inst, ep) for i, (inst, ep)
-                                     in enumerate(zip(chosen, episodes))], model.info.parameter_names)
-                 for camera in cameras}
+    def estimate(camera: str, i: int, ep):
+        kept = lossy[camera](i) if camera in lossy else range(count)
+        frames = cameras[camera](ep)
+        return predict_episode(model, camera, truths[i], [stamps[k] for k in kept], len(kept),
+                               masks=[frames[k] for k in kept])
+
+    by_camera = {camera: to_metrics([estimate(camera, i, ep) for i, ep in enumerate(episodes)],
+                                    model.info.parameter_names) for camera in cameras}
     # Object pixels a cropped camera does not see: where its estimates may rightly differ.
     def missed(camera: str) -> float:
         return float(np.mean([1 - (cameras[camera](ep) > 0).sum() / max((ep.masks_full[0] > 0).sum(), 1)

@@ -28,7 +28,7 @@ for pkg in ("ad_sim", "ad_estimator"):
 from ad_estimator.cli import HelpFormatter  # noqa: E402
 from ad_estimator.metrics import ERROR_KIND  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL  # noqa: E402
-from ad_sim.instances import benchmark  # noqa: E402
+from ad_sim.instances import drawn_per_family  # noqa: E402
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, SAMPLED_PARAMETERS  # noqa: E402
 from ad_sim.resimulate import mask_psnr, resimulate  # noqa: E402
 
@@ -82,13 +82,7 @@ def main(argv=None) -> int:
         p.error("--instances must be at least 1")
 
     model_id, errors = model_errors(args.metrics)
-    rng = np.random.default_rng(args.seed)
-    pool = benchmark(args.size, "unseen")
-    chosen = []
-    for family in args.families:
-        of_family = [inst for inst in pool if inst.material == family]
-        picks = rng.choice(len(of_family), size=min(args.instances, len(of_family)), replace=False)
-        chosen += [of_family[i] for i in sorted(picks)]
+    chosen = drawn_per_family(args.size, "unseen", args.instances, args.seed, args.families)
 
     # One batch: each instance as it is, then each (parameter, direction) move of it.
     moves = []  # (index into chosen, parameter, moved parameters)

@@ -170,3 +170,15 @@ def test_instance_file_structure_errors(tmp_path):
     duplicate.write_text(json.dumps([GOOD | {"episode_id": "a"}, GOOD | {"episode_id": "a", "seed": 2}]))
     with pytest.raises(ValueError, match="duplicate episode_id"):
         load_instance_file(duplicate)
+
+
+def test_drawn_per_family_is_seeded_capped_and_in_benchmark_order():
+    from ad_sim.instances import benchmark, drawn_per_family
+
+    pool = [i.episode_id for i in benchmark("tiny", "unseen")]
+    drawn = drawn_per_family("tiny", "unseen", 1, seed=3)
+    assert [i.material for i in drawn] == ["jelly", "plasticine", "sand"]
+    assert [i.episode_id for i in drawn] == [i.episode_id for i in drawn_per_family("tiny", "unseen", 1, seed=3)]
+    every = drawn_per_family("tiny", "unseen", 10**6, seed=0, families=("sand",))
+    ids = [i.episode_id for i in every]
+    assert ids == [e for e in pool if "-sand-" in e]  # all of the family, in benchmark order

@@ -61,7 +61,8 @@ def write_evaluation(by_frames: dict[int, Predictions], out: str | Path, title: 
 def print_results(results: dict, title: str, out: str | Path, predictions: bool = True) -> None:
     """The paper table (the full clip and the temporal-OOD rows) and where the report went."""
     print(format_table({k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}, title))
-    print(f"report: {Path(out) / 'report.md'}" + (f"  predictions: {Path(out) / 'predictions.json'}" if predictions else ""))
+    where = f"report: {Path(out) / 'report.md'}"
+    print(where + (f"  predictions: {Path(out) / 'predictions.json'}" if predictions else ""))
 
 
 def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, out: str | Path | None,

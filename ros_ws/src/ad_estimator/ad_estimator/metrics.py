@@ -273,8 +273,6 @@ def read_frames_json(path: str | Path, what: str, hint: str) -> dict:
     predictions.json that evaluations write). Every way it can be unusable is a one-line ValueError
     naming the file, what it should be (`what`, e.g. "a metrics file") and what to pass (`hint`)."""
     path = Path(path)
-    if path.is_dir():
-        raise ValueError(f"{path} is a folder; {hint}")
     try:
         saved = json.loads(path.read_text())
     except FileNotFoundError:

@@ -106,7 +106,6 @@ class EstimatorNode(Node):
 
         self.queue: queue.Queue = queue.Queue(maxsize=p["queue_size"])
         self.counters = dict(received=0, rejected=0, dropped=0, processed=0, published=0, errors=0, off_framing=0)
-        self._framing_checked = 0  # episodes whose first frame's framing was checked
         self.latencies: deque[float] = deque(maxlen=1000)  # arrival -> publish, seconds
         self.model_times: deque[float] = deque(maxlen=1000)
         self._period_counts = dict(received=0, published=0, dropped=0, rejected=0)
@@ -189,15 +188,15 @@ class EstimatorNode(Node):
         encode_time = [0.0]
 
         def encode(frame, earlier):
-            if self.window.episodes != self._framing_checked:  # the episode's first frame
-                self._framing_checked = self.window.episodes
-                self._check_framing(frame)
             start = time.perf_counter()
             feature = self.model.encode(frame, earlier)
             encode_time[0] = time.perf_counter() - start
             return feature
 
+        episodes = self.window.episodes
         outputs = self.window.add(stamp, mask, encode)
+        if self.window.episodes != episodes:  # this frame started an episode
+            self._check_framing(mask)
         self._count("processed")
         return [self._publish(out, msg.header.frame_id, arrival, encode_time[0]) for out in outputs]
 

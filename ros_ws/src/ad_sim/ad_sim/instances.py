@@ -218,6 +218,20 @@ _OPTIONAL_FIELDS = ("views", "episode_id", "split")
 _RANGE_SLACK = 1e-9
 
 
+
+def drawn_per_family(size: str, split: str, per_family: int, seed: int,
+                     families=materials.FAMILIES) -> list[Instance]:
+    """`per_family` instances of each family (at most all of them), drawn from a benchmark split by
+    one generator seeded with `seed` across the families in order; each family's in benchmark order."""
+    rng = np.random.default_rng(seed)
+    pool = benchmark(size, split)
+    chosen = []
+    for family in families:
+        of_family = [inst for inst in pool if inst.material == family]
+        picks = rng.choice(len(of_family), size=min(per_family, len(of_family)), replace=False)
+        chosen += [of_family[i] for i in sorted(picks)]
+    return chosen
+
 def _validate_parameters(family: str, given, where: str) -> dict[str, float]:
     if not isinstance(given, dict):
         raise ValueError(f"{where}: field 'parameters' must be a mapping of name -> value, got {given!r}")
