@@ -5,6 +5,7 @@ setup.sh's CMake repair and idempotency."""
 from __future__ import annotations
 
 import array
+import ast
 import importlib.metadata
 import importlib.util
 import math
@@ -361,3 +362,34 @@ def test_setup_rerun_skips_everything():
     assert "up to date: requirements.txt" in result.stdout
     assert "up to date: ros_ws build" in result.stdout
     assert elapsed < 30, f"a re-run took {elapsed:.1f} s"
+
+
+def _third_party_imports(package_dir: Path) -> set[str]:
+    """Top-level modules a package imports (at module level or inside functions), stdlib excluded."""
+    names = set()
+    for source in package_dir.rglob("*.py"):
+        for node in ast.walk(ast.parse(source.read_text())):
+            if isinstance(node, ast.Import):
+                names |= {alias.name.split(".")[0] for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                names.add(node.module.split(".")[0])
+    return names - set(sys.stdlib_module_names)
+
+
+def test_runtime_requirements_cover_every_import():
+    """A robot with system ROS installs requirements-runtime.txt only: everything ad_sim and
+    ad_estimator import, ROS's own packages aside, must be pinned there."""
+    lines = (REPO_ROOT / "requirements-runtime.txt").read_text().splitlines()
+    runtime = {line.split("==")[0].lower() for line in lines if "==" in line and not line.startswith("#")}
+    distributions = importlib.metadata.packages_distributions()
+    packages = {"ad_sim", "ad_estimator", "ad_msgs"}
+    needed = set()
+    for package in ("ad_sim", "ad_estimator"):
+        for module in _third_party_imports(REPO_ROOT / "ros_ws/src" / package / package) - packages:
+            owners = distributions.get(module, [])
+            assert owners, f"{package} imports {module}, which no installed distribution provides"
+            if not any(owner.startswith("ros-") for owner in owners):  # ROS's own: /opt/ros/jazzy has them
+                needed |= set(owners)
+    assert "libigl" in needed and "onnxruntime" in needed  # the scan found the imports
+    missing = {name for name in needed if name.lower() not in runtime}
+    assert not missing, f"imported but not in requirements-runtime.txt: {sorted(missing)}"
