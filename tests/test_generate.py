@@ -90,6 +90,23 @@ def test_resume_after_kill_gives_the_uninterrupted_bags(tmp_path):
 
 
 @pytest.mark.ros
+def test_rerun_with_other_settings_is_refused_and_keeps_the_bag(tmp_path, capsys):
+    args = ["--quiet", "--size", "tiny", "--split", "unseen", "--skip-particles", "--out", str(tmp_path)]
+    assert main([*args, "--limit", "1"]) == 0
+    shard = tmp_path / "unseen-0of1"
+    before = digests(shard)
+    assert main([*args, "--limit", "1"]) == 0
+    assert "already done, skipped" in capsys.readouterr().err
+    for other, named in ((["--limit", "2"], "instances"), (["--limit", "1", "--views", "2"], "views"),
+                         (["--limit", "1", "--compression", "lz4"], "compression")):
+        assert main([*args, *other]) == 1
+        error = capsys.readouterr().err
+        assert f"other settings ({named}" in error and "delete it or choose another --out" in error, error
+    assert digests(shard) == before and sorted(p.name for p in shard.iterdir()) == sorted(
+        [DONE_MARKER, "unseen-0of1_0.mcap", "metadata.yaml"])  # the finished bag is left as it was
+
+
+@pytest.mark.ros
 def test_instance_file_one_shard_and_skip_particles(tmp_path):
     entries = [
         {"shape": "cone", "material": "plasticine", "seed": 5,

@@ -3,7 +3,7 @@
 Same content as recording the simulator node's topics (ad_sim.messages is shared), without
 DDS. Output is sharded: shard i of N holds instances i, i+N, i+2N, ... of the list in
 OUT/<name>-<i>of<N>/ (name: the split, the instance file's stem or --name), a bag folder. A finished shard has a DONE marker and is skipped when the
-command is run again; a shard without it (a killed run) is deleted and redone.
+command is run again with the same settings (refused with other ones); a shard without it (a killed run) is deleted and redone.
 Deterministic: the same arguments give byte-identical bags.
 """
 
@@ -42,6 +42,30 @@ def is_done(folder: Path) -> bool:
     return (folder / DONE_MARKER).is_file()
 
 
+class ShardMismatch(ValueError):
+    """A finished shard was written with other settings than those asked for now."""
+
+
+def shard_settings(instances: list, views: int | None, skip: frozenset[str], compression: str, max_bag_size: int) -> dict:
+    """What decides a shard's content, as recorded in its DONE marker."""
+    episodes = [[i.episode_id, i.material, i.parameters, i.seed, i.views] for i in instances]
+    return {
+        "episodes": hashlib.sha256(json.dumps(episodes, sort_keys=True).encode()).hexdigest(),
+        "views": views, "skip": sorted(skip), "compression": compression, "max_bag_size": max_bag_size,
+    }
+
+
+def _check_settings(folder: Path, settings: dict) -> None:
+    recorded = json.loads((folder / DONE_MARKER).read_text()).get("settings")
+    if recorded is None:  # written before markers recorded their settings
+        return
+    differing = sorted(key for key in settings if recorded.get(key) != settings[key])
+    if differing:
+        names = ", ".join("instances (split, seed, --limit or file)" if key == "episodes" else key for key in differing)
+        raise ShardMismatch(
+            f"{folder} was written with other settings ({names}); delete it or choose another --out to write it anew")
+
+
 def _file_digests(folder: Path) -> dict[str, str]:
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.glob("*.mcap"))}
 
@@ -73,12 +97,15 @@ def generate_shard(
     skip: frozenset[str] = frozenset(),
     progress: bool = True,
 ) -> bool:
-    """Simulate `instances` and write them as one bag folder; False if it was already done."""
+    """Simulate `instances` and write them as one bag folder; False if it was already done with the
+    same settings. Raises ShardMismatch if it was done with others."""
     from tqdm import tqdm
 
     from .episode import simulate_batch
 
+    settings = shard_settings(instances, views, skip, compression, max_bag_size)
     if is_done(folder):
+        _check_settings(folder, settings)
         return False
     if folder.exists():
         shutil.rmtree(folder)  # a partial shard of a killed run
@@ -90,7 +117,8 @@ def generate_shard(
             write_episodes(writer, episodes, start, skip=skip)
             bar.update(len(episodes))
     writer.close()
-    done = {"episodes": len(instances), "messages": writer.message_count, "sha256": _file_digests(folder)}
+    done = {"episodes": len(instances), "messages": writer.message_count, "sha256": _file_digests(folder),
+            "settings": settings}
     marker = folder / DONE_MARKER
     marker.with_suffix(".tmp").write_text(json.dumps(done, indent=2) + "\n")
     marker.with_suffix(".tmp").replace(marker)  # atomic: a kill never leaves a half-written marker
@@ -172,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
                 skip=frozenset([messages.particles_topic()]) if args.skip_particles else frozenset(),
                 progress=not args.quiet,
             )
-        except BagError as exc:
+        except (BagError, ShardMismatch) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
         print(f"{folder}: {'written' if wrote else 'already done, skipped'}", file=sys.stderr)
