@@ -226,10 +226,11 @@ def _write_shard(folder: Path, episodes: list[dict], source_problems: list[str])
 class Dataset:
     """All instances of a set of bags; small arrays in memory, big ones memory-mapped per shard."""
 
-    def __init__(self, shards: list[Path]):
+    def __init__(self, shards: list[Path], problems: list[str] = ()):
         if not shards:
             raise ValueError("a Dataset needs at least one cached bag")
         self.shards = shards
+        self.problems = list(problems)  # what in the source bags was left out (episodes, whole bags, truncation)
 
         def load(name: str, mmap: bool = False) -> list[np.ndarray]:
             return [np.load(s / name, mmap_mode="r" if mmap else None) for s in shards]
@@ -283,25 +284,28 @@ class Dataset:
 def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True) -> Dataset:
     """Decodes every bag under `bags` that is not cached yet, then opens the cached dataset."""
     cache_dir = Path(cache_dir)
-    shards = []
+    shards, problems = [], []
     for path in tqdm(find_bags(bags), desc="cache bags", disable=not progress, unit="bag"):
         folder = cache_dir / bag_key(path)
         if (folder / "meta.json").exists():
-            for problem in json.loads((folder / "meta.json").read_text())["source_problems"]:
+            source_problems = json.loads((folder / "meta.json").read_text())["source_problems"]
+            for problem in source_problems:
                 log.warning("cached from an incomplete bag: %s", problem)
         else:
-            episodes, problems = read_bag(path)
+            episodes, source_problems = read_bag(path)
             if not episodes:
-                log.warning("%s holds no complete episode", path)
+                problems += [*source_problems, f"{path} holds no complete episode; left out"]
+                log.warning("%s", problems[-1])
                 continue
-            _write_shard(folder, episodes, problems)
+            _write_shard(folder, episodes, source_problems)
+        problems += source_problems
         shards.append(folder)
     if not shards:
         raise ValueError(f"no complete episodes in the bags under {bags}: training and `python -m training` "
                          f"evaluation need all {FRAME_COUNT} frames of a mask view and of the tracked particles "
                          f"({particles_topic()}), which bags generated with --skip-particles lack (evaluate those "
                          f"with `ros2 run ad_estimator evaluate`)")
-    return Dataset(shards)
+    return Dataset(shards, problems)
 
 
 def split_instances(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -76,10 +77,15 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
     title = title or f"{model.model_id} on {bags}"
     if out is None:
         out = Path(model_path).with_suffix("").with_name(Path(model_path).stem + "_eval")
-    results = write_evaluation(by_frames, out, title, {"model_id": model.model_id, "model_path": str(model_path)})
+    results = write_evaluation(by_frames, out, title, {"model_id": model.model_id, "model_path": str(model_path),
+                                                        "episodes": len(ds), "source_problems": ds.problems})
     if record:
         print(f"recorded in {update_model_metrics(model_path, {'evaluation': {Path(bags).name: summary(results)}})}")
     print_results(results, title, out)
+    if ds.problems:
+        print(f"warning: only {len(ds)} complete episodes under {bags} were scored; the bags' problems are listed "
+              f"above and in predictions.json. Masks-only bags (--skip-particles) need `ros2 run ad_estimator "
+              f"evaluate`, which scores them", file=sys.stderr)
     return results
 
 
