@@ -7,6 +7,8 @@ import pytest
 
 from ad_estimator import estimate, evaluate
 from ad_sim import messages
+from mcap.reader import make_reader
+
 from ad_sim.rosbag import BagWriter, qos_profile
 from estimator_bags import EPISODES, damaged, write_test_bag
 from estimator_models import build_streaming_model, falling_masks
@@ -196,6 +198,27 @@ def test_a_bag_that_cannot_be_read_is_skipped_and_the_others_kept(setup, tmp_pat
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "0 frame(s) read, 0 accepted; 1 bag(s) could not be read" in err, err
     assert "try --output-policy" not in err and not (tmp_path / "n.csv").exists()
+
+
+def test_a_damaged_bag_points_at_recover(setup, tmp_path, capsys):
+    """A chunk of the last episode's frames corrupted in the copy: without --recover the bag is
+    refused and the hint is --recover (not the output policy); with it, the other episodes come out."""
+    model, _ = setup
+    bag = write_test_bag(tmp_path / "bag", chunk_size=64 * 1024)
+    file = next(bag.glob("*.mcap"))
+    with open(file, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    data = bytearray(file.read_bytes())
+    middle = chunks[-1].chunk_start_offset + chunks[-1].chunk_length // 2
+    data[middle : middle + 64] = bytes(64)
+    file.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match=r"bag skipped: .*corrupt record.*pass --recover"):
+        assert run(model, bag, "--out", tmp_path / "e.csv") == 1
+    err = capsys.readouterr().err
+    assert "Pass --recover to read the undamaged part" in err and "output-policy" not in err, err
+    with pytest.warns(UserWarning, match=r"corrupt record .*skipped"):
+        assert run(model, bag, "--recover", "--out", tmp_path / "r.csv") == 0
+    assert [r["episode"] for r in read_csv(tmp_path / "r.csv")][:2] == ["1", "2"]
 
 
 def test_clear_errors_before_any_work(setup, tmp_path, capsys):

@@ -29,7 +29,7 @@ from ad_estimator.images import ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
 from ad_estimator.window import POLICIES, WindowOutput, stamp_to_ns
-from ad_sim.rosbag import BagError, BagReader, one_line_warnings
+from ad_sim.rosbag import BagDamaged, BagError, BagReader, one_line_warnings
 
 # The node's parameters that apply offline, offered as options of the same names (--gap-threshold ...).
 OPTIONS = ("output_policy", "min_frames", "every_n", "gap_threshold", "slot_tolerance", "idle_flush",
@@ -162,20 +162,26 @@ def main(argv: list[str] | None = None) -> int:
     except (ModelError, BagError, ValueError) as exc:
         print(f"estimate: {exc}", file=sys.stderr)
         return 1
-    rows, failed = [], []
+    rows, failed, damaged = [], [], False
     for bag in tqdm(bags, desc="bags", unit="bag", disable=args.quiet):
         try:
             rows += estimate_bag(model, bag, args.topic, values, args.recover, tally)
         except BagError as exc:  # the other bags are still worth their estimates
             warnings.warn(f"bag skipped: {exc}")
             failed.append(str(bag))
+            damaged |= isinstance(exc, BagDamaged)
     frames = tally.pop("frames", 0)
     problems = "".join([f"; {sum(tally.values())} frame(s) skipped ({dict(tally)})" if tally else "",
                         f"; {len(failed)} bag(s) could not be read: {', '.join(failed)}" if failed else ""])
     if not rows:
         accepted = frames - sum(tally.values())
-        hint = (" Episodes shorter than the model's frame slots give no estimate under the episode policy; "
-                "try --output-policy anytime." if accepted and args.output_policy == "episode" else "")
+        if damaged:
+            hint = " Pass --recover to read the undamaged part of the damaged bags."
+        elif accepted and not failed and args.output_policy == "episode":
+            hint = (" Episodes shorter than the model's frame slots give no estimate under the episode policy; "
+                    "try --output-policy anytime.")
+        else:
+            hint = ""
         print(f"estimate: no estimate from {args.topic} in {[str(b) for b in args.bags]}: {frames} frame(s) read, "
               f"{accepted} accepted{problems}.{hint}", file=sys.stderr)
         return 1

@@ -67,6 +67,13 @@ class BagError(ValueError):
     """A bag (or one of its files) cannot be read or written as asked."""
 
 
+class BagDamaged(BagError):
+    """Part of a bag file is damaged or missing (a killed writer, a corrupt copy); recover=True reads the rest."""
+
+
+RECOVER_ADVICE = "pass --recover (BagReader(recover=True)) to read the rest of the bag"
+
+
 # --------------------------------------------------------------------------- schemas
 
 
@@ -626,16 +633,17 @@ class BagReader:
             warnings.warn(message, stacklevel=3)
 
     def _problem(self, message: str, recovery: str) -> None:
-        """A damaged part of a file: an error, or when recovering a warning ending in what was done about it."""
+        """A damaged part of a file: an error saying what --recover would do, or when recovering a
+        warning ending in what was done about it."""
         if not self.recover:
-            raise BagError(message)
+            raise BagDamaged(f"{message}. To skip the damaged part and report it, {RECOVER_ADVICE}")
         self._warn(f"{message}; {recovery}")
 
     def _truncated(self, scan: _FileScan, what: str, to_recover: str) -> None:
         """A file a killed writer left (`what`: "is empty (...)"): an error saying what --recover
         would do, or when recovering noted for the warning after its scan (what was recovered)."""
         if not self.recover:
-            raise BagError(f"{scan.path} {what}. {to_recover} with --recover (BagReader(recover=True))")
+            raise BagDamaged(f"{scan.path} {what}. {to_recover} with --recover (BagReader(recover=True))")
         scan.truncated = what
 
     def _read_summary(self, scan: _FileScan, data) -> list[ChunkIndex] | None:
@@ -706,7 +714,7 @@ class BagReader:
         while pos < size:
             if pos + 9 > size:
                 if not self.recover:
-                    raise BagError(f"{scan.path} is truncated at byte {pos} (incomplete record header)")
+                    raise BagDamaged(f"{scan.path} is truncated at byte {pos} (incomplete record header); {RECOVER_ADVICE}")
                 cut_at = pos
                 break
             opcode = data[pos]
@@ -714,9 +722,9 @@ class BagReader:
             end = pos + 9 + length
             if end > size:
                 if not self.recover:
-                    raise BagError(
+                    raise BagDamaged(
                         f"{scan.path} is truncated or corrupt at byte {pos}: a record (opcode 0x{opcode:02x}) of "
-                        f"{length} bytes runs past the end of the file ({size} bytes)"
+                        f"{length} bytes runs past the end of the file ({size} bytes); {RECOVER_ADVICE}"
                     )
                 cut_at = pos
                 break
