@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from ad_msgs.msg import MaterialEstimate
 from ad_msgs.srv import EstimateMaterial
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from rclpy.node import Node
@@ -229,6 +229,23 @@ def test_diagnostics(ros, model_paths):
     assert float(values["latency_p50_ms"]) > 0 and values["frames_dropped"] == "0"
     for key in ("input_rate_hz", "estimate_rate_hz", "latency_p95_ms", "model_time_p50_ms"):
         float(values[key])
+
+
+def test_a_best_effort_camera_against_a_reliable_subscription_is_reported(ros, model_paths):
+    """DDS delivers nothing from a best-effort publisher to a reliable subscription: the node counts
+    the publisher and puts it in /diagnostics as a warning, instead of waiting in silence."""
+    t = start(ros, model_paths["streaming"], diagnostics_period=0.2)  # reliable:=true
+    arrays = []
+    t.client.create_subscription(DiagnosticArray, "/diagnostics", arrays.append, 10)
+    camera = t.client.create_publisher(Image, TOPIC, QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+    assert wait_for(lambda: t.node.statistics()["incompatible_publishers"] == 1)
+    assert wait_for(lambda: arrays and arrays[-1].status[0].message.endswith("1 input publisher(s) with incompatible QoS"))
+    assert arrays[-1].status[0].level == DiagnosticStatus.WARN
+    assert {kv.key: kv.value for kv in arrays[-1].status[0].values}["incompatible_publishers"] == "1"
+    for k, mask in enumerate(falling_masks(seed=9)):
+        camera.publish(image_msg(mask, k * DT))
+    time.sleep(0.3)
+    assert t.node.statistics()["received"] == 0
 
 
 # --------------------------------------------------------------------------- bad input

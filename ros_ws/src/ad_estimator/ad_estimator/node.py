@@ -32,7 +32,8 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
@@ -105,7 +106,8 @@ class EstimatorNode(Node):
         self.idle_flush = p["idle_flush"]
 
         self.queue: queue.Queue = queue.Queue(maxsize=p["queue_size"])
-        self.counters = dict(received=0, rejected=0, dropped=0, processed=0, published=0, errors=0, off_framing=0)
+        self.counters = dict(received=0, rejected=0, dropped=0, processed=0, published=0, errors=0, off_framing=0,
+                             incompatible_publishers=0)
         self.latencies: deque[float] = deque(maxlen=1000)  # arrival -> publish, seconds
         self.model_times: deque[float] = deque(maxlen=1000)
         self._period_counts = dict(received=0, published=0, dropped=0, rejected=0)
@@ -122,7 +124,9 @@ class EstimatorNode(Node):
         self.input_topic = self._input_topic()
         self.publisher = self.create_publisher(MaterialEstimate, "~/estimate", QoSProfile(depth=10))
         self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.subscription = self.create_subscription(Image, self.input_topic, self.on_image, input_qos)
+        self.subscription = self.create_subscription(
+            Image, self.input_topic, self.on_image, input_qos,
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self.on_incompatible_qos))
         self.create_service(Trigger, "~/reset", self.on_reset)
         self.create_service(EstimateMaterial, "~/estimate", self.on_estimate)
         self.create_timer(p["diagnostics_period"], self.publish_diagnostics)
@@ -157,6 +161,17 @@ class EstimatorNode(Node):
             self.counters[name] += 1
             if name in self._period_counts:
                 self._period_counts[name] += 1
+
+    def on_incompatible_qos(self, event) -> None:
+        """A publisher on the input topic this subscription cannot hear (e.g. best effort, while
+        reliable:=true): DDS delivers nothing from it, so say so and how to fix it."""
+        with self._lock:
+            self.counters["incompatible_publishers"] = event.total_count
+        policy = QoSPolicyKind(event.last_policy_kind).name.lower()
+        fix = ("set -p reliable:=false, or make the camera publish reliably" if self.subscription.qos_profile.reliability
+               == ReliabilityPolicy.RELIABLE else "check the publisher's QoS")
+        self.get_logger().error(f"a publisher on {self.input_topic} offers QoS incompatible with this subscription "
+                                f"({policy}): no frames from it will arrive; {fix}")
 
     def on_image(self, msg: Image) -> None:
         """Subscription callback: header checks only, then the bounded queue."""
@@ -332,6 +347,8 @@ class EstimatorNode(Node):
         status.name = f"{self.get_fully_qualified_name()}: material estimator"
         status.hardware_id = self.info.model_id
         problems = [f"{recent[k]} frames {k}" for k in ("dropped", "rejected") if recent[k]]
+        if stats["incompatible_publishers"]:
+            problems.append(f"{stats['incompatible_publishers']} input publisher(s) with incompatible QoS")
         status.level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
         status.message = "; ".join(problems) or "ok"
         values = {
@@ -344,6 +361,7 @@ class EstimatorNode(Node):
             "frames_dropped": str(stats["dropped"]), "estimates_published": str(stats["published"]),
             "processing_errors": str(stats["errors"]), "queue_depth": str(stats["queue_depth"]),
             "episodes_off_framing": str(stats["off_framing"]),
+            "incompatible_publishers": str(stats["incompatible_publishers"]),
             "window_restarts": str(sum(v for k, v in stats["window_restarts"].items() if k != "first")),
         }
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
