@@ -240,6 +240,14 @@ def test_a_topic_that_is_not_an_image_is_named(setup, tmp_path, capsys):
     assert "carries ad_msgs/msg/SimInstance, not sensor_msgs/msg/Image" in err
 
 
+def test_a_missing_topic_names_the_bags_image_topics(setup, tmp_path, capsys):
+    model, bag = setup
+    assert run_main(model, bag, tmp_path / "out", "--topic", "/cam/mask") == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no episode with 25 frames on /cam/mask" in err, err
+    assert err.rstrip().endswith("the bags' image topics: /ad_sim/view_0/mask (pass one with --topic)"), err
+
+
 def test_an_unusable_out_is_refused_before_any_work(setup, tmp_path, capsys):
     """Before the bags are even looked at (a missing bag is not reported: --out is checked first)."""
     model, _ = setup

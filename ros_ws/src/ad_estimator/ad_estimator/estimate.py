@@ -24,7 +24,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ad_estimator.cli import HelpFormatter
-from ad_estimator.evaluate import IMAGE_TYPE, check_image_topic, check_out, find_bags
+from ad_estimator.evaluate import check_image_topic, check_out, find_bags, image_topics
 from ad_estimator.images import ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
@@ -52,8 +52,7 @@ def mask_frames(bag: Path, topic: str, recover: bool):
     topics = reader.topics()
     check_image_topic(topics, topic, bag)
     if topic not in topics:
-        images = sorted(t for t, kind in topics.items() if kind == IMAGE_TYPE)
-        raise BagError(f"{bag} has no topic {topic}; its image topics: {', '.join(images) or 'none'} "
+        raise BagError(f"{bag} has no topic {topic}; its image topics: {', '.join(image_topics(topics)) or 'none'} "
                        "(pass one with --topic)")
     for message in reader:
         yield message.log_time_ns, message.message

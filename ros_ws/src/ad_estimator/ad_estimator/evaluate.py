@@ -96,6 +96,11 @@ def check_image_topic(topics: dict[str, str], topic: str, bag: Path) -> None:
                        "with --topic (e.g. /ad_sim/view_0/mask)")
 
 
+def image_topics(topics: dict[str, str]) -> list[str]:
+    """The Image topics among a bag's (BagReader.topics()), sorted."""
+    return sorted(t for t, kind in topics.items() if kind == IMAGE_TYPE)
+
+
 def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = False):
     """(instance, [(stamp_ns, Image)]) per episode of the bag, in order. `recover`: read a truncated
     or damaged file (a killed recorder) up to its last complete chunk, with a warning."""
@@ -261,15 +266,18 @@ def main(argv: list[str] | None = None) -> int:
         counts = sorted({count, *extra}, reverse=True)
         out = args.out or Path("reports") / "evaluate" / model.model_id
         check_out(out)
-        evaluation = evaluate(model, find_bags(args.bags), counts, args.topic, progress=not args.quiet,
-                              recover=args.recover)
+        bags = find_bags(args.bags)
+        evaluation = evaluate(model, bags, counts, args.topic, progress=not args.quiet, recover=args.recover)
     except (ModelError, BagError, ValueError) as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 1
     results, problems = evaluation.predictions, evaluation.problems()
     if not results[count]:
+        images = sorted({t for bag in bags for t in image_topics(BagReader(bag, recover=True).topics())})
+        hint = "" if args.topic in images else f"; the bags' image topics: {', '.join(images) or 'none'} " \
+                                                "(pass one with --topic)"
         print(f"evaluate: no episode with {count} frames on {args.topic} in {[str(b) for b in args.bags]}"
-              + (f"; {problems}" if problems else ""), file=sys.stderr)
+              + (f"; {problems}" if problems else "") + hint, file=sys.stderr)
         return 1
     title = args.title or f"{model.model_id} on {', '.join(str(b) for b in args.bags)}"
     by_frames = {k: to_metrics(v, model.info.parameter_names) for k, v in results.items() if v}
