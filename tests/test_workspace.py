@@ -103,6 +103,18 @@ def test_adrun_runs_executable_help(package, executable, ros_domain_id):
     assert "usage" in result.stdout.lower()
 
 
+@pytest.mark.parametrize("package, executable", [("ad_sim", "node"), ("ad_sim", "record"), ("ad_estimator", "node"),
+                                                 ("ad_estimator", "replay")])
+def test_unreadable_params_file_is_one_line(package, executable, tmp_path, ros_domain_id):
+    """The ROS nodes: ROS arguments rcl cannot parse give one line and exit 2, not a traceback."""
+    result = run([str(ADRUN), package, executable, "--ros-args", "--params-file", str(tmp_path / "none.yaml")],
+                 timeout=30)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert result.stderr.strip() == (f"ros2 run {package} {executable}: Failed to parse ROS arguments: Couldn't "
+                                     f"parse params file: '--params-file {tmp_path / 'none.yaml'}'. Error: Error "
+                                     "opening YAML file"), result.stderr
+
+
 # --- messages through rclpy serialization -------------------------------------------------------
 
 

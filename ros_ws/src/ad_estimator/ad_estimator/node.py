@@ -30,9 +30,8 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy._rclpy_pybind11 import RCLError
-from rclpy.node import Node
-from rclpy.utilities import remove_ros_args
 from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.node import Node
 from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
@@ -41,6 +40,7 @@ from ad_estimator.images import ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, TRAINED_EXTENT, Estimate, EstimatorModel, ModelError, object_extent
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
 from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
+from ad_sim.dds import non_ros_args
 
 LOG_THROTTLE_S = 5.0
 MAX_CLIP_FRAMES = 1000
@@ -393,7 +393,7 @@ def parse_cli(argv: list[str]) -> None:
         "\n  /ad_estimator/reset     std_srvs/Trigger: forget the current episode; the next frame starts a new one"
         "\n  /ad_estimator/estimate  ad_msgs/srv/EstimateMaterial: one estimate for a clip of frames in the request"
         "\n\nExit status 1 if the model cannot be loaded.")
-    parser.parse_args(remove_ros_args(argv)[1:])
+    parser.parse_args(non_ros_args(parser.prog, argv)[1:])
 
 
 def main(args=None) -> int:

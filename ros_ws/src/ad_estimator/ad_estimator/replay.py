@@ -21,11 +21,10 @@ from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.utilities import remove_ros_args
 from tqdm import tqdm
 
 from ad_estimator.cli import HelpFormatter
-from ad_sim.dds import use_fast_heartbeat
+from ad_sim.dds import non_ros_args, use_fast_heartbeat
 from ad_sim.rosbag import BagError, BagReader, one_line_warnings
 
 # Used when a bag has no metadata.yaml (a lone .mcap): what the simulator offers.
@@ -156,7 +155,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 def main(args=None) -> int:
     argv = sys.argv if args is None else args
-    options = parse_args(remove_ros_args(argv)[1:])
+    options = parse_args(non_ros_args("ros2 run ad_estimator replay", argv)[1:])
     one_line_warnings()
     use_fast_heartbeat()  # acknowledgements (and the wait for them at the end) in ms, not at 3 s heartbeats
     rclpy.init(args=argv)

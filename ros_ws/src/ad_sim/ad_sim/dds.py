@@ -1,4 +1,5 @@
-"""DDS settings shared by the nodes that publish the simulator's topics (simulator, replay).
+"""ROS process set-up shared by the nodes: their command line (non_ros_args) and, for those that
+publish the simulator's topics (simulator, replay), DDS writer settings (use_fast_heartbeat).
 
 Reliable writers repair a lost sample and learn of acknowledgements at their heartbeats: every
 3 s by default on Fast DDS. That caps paced playback and can hold a stream up for seconds after
@@ -8,6 +9,7 @@ one lost packet, so these nodes load a default writer profile with 20 ms heartbe
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 FAST_HEARTBEAT_PROFILE = Path(__file__).resolve().parent / "data" / "dds" / "fast_heartbeat.xml"
@@ -19,3 +21,17 @@ def use_fast_heartbeat() -> None:
     if os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"):
         if not os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE") and not os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE"):
             os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(FAST_HEARTBEAT_PROFILE)
+
+
+def non_ros_args(prog: str, argv: list[str]) -> list[str]:
+    """argv without its `--ros-args ...` part. ROS arguments rcl cannot parse (e.g. a --params-file
+    that cannot be read) exit with a one-line error and status 2, as argparse does for the others."""
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+    from rclpy.utilities import remove_ros_args
+
+    try:
+        return remove_ros_args(argv)
+    except rclpy_implementation.RCLInvalidROSArgsError as exc:
+        reason = str(exc).split(", at ")[0]  # rcl appends its C source locations
+        print(f"{prog}: {reason}", file=sys.stderr)
+        raise SystemExit(2) from None

@@ -37,7 +37,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from . import materials, messages
-from .dds import use_fast_heartbeat
+from .dds import non_ros_args, use_fast_heartbeat
 
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
@@ -159,12 +159,10 @@ def handle_help(prog: str, doc: str, parameters, args: list[str] | None) -> None
     import argparse
     import sys
 
-    from rclpy.utilities import remove_ros_args
-
     parser = argparse.ArgumentParser(
         prog=prog, description=doc, epilog=parameter_help(parameters), formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.parse_args(remove_ros_args(sys.argv if args is None else args)[1:])
+    parser.parse_args(non_ros_args(prog, sys.argv if args is None else args)[1:])
 
 
 class SimNode(Node):
