@@ -96,7 +96,8 @@ def test_user_errors_are_one_line_without_traceback(tmp_path, capsys, monkeypatc
     model = REPO / "ros_ws" / "src" / "ad_estimator" / "ad_estimator" / "models" / "default.onnx"
     cases = [
         (["evaluate", "--model", str(tmp_path / "missing.onnx"), "--bags", str(masks_only)], "model file not found"),
-        (["cache", "--bags", str(tmp_path / "nothing"), "--cache", str(tmp_path / "c")], "no .mcap bags under"),
+        (["cache", "--bags", str(tmp_path / "nothing"), "--cache", str(tmp_path / "c")], "nothing does not exist"),
+        (["cache", "--bags", str(tmp_path), "--cache", str(tmp_path / "c")], "generate some with"),
         (["evaluate", "--model", str(model), "--bags", str(masks_only), "--cache", str(tmp_path / "c"),
           "--no-progress"], "--skip-particles"),
         (["export", "--checkpoint", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "m.onnx")], "missing.pt"),

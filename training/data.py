@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ad_estimator.evaluate import find_bags as bags_under
 from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask
 from ad_sim.materials import (
     FAMILIES,
@@ -44,7 +45,7 @@ from ad_sim.materials import (
 )
 from ad_sim.messages import POINT_FIELDS, instance_topic, particles_topic
 from ad_sim.render import MASK_SIZE
-from ad_sim.rosbag import BagReader, group_episodes
+from ad_sim.rosbag import BagError, BagReader, group_episodes
 
 log = logging.getLogger(__name__)
 
@@ -54,16 +55,14 @@ _HASH_BLOCK = 1 << 20
 
 
 def find_bags(root: str | Path) -> list[Path]:
-    """Bags under root: every folder holding .mcap files (a rosbag2 bag), or root itself if it
-    is a .mcap file or a bag folder; sorted."""
+    """Bags under root (ad_estimator.evaluate.find_bags); FileNotFoundError if there are none."""
     root = Path(root)
-    if root.is_file():
-        return [root]
-    bags = sorted({p.parent for p in root.rglob("*.mcap")})
-    if not bags:
-        raise FileNotFoundError(f"no .mcap bags under {root}; generate some with "
-                                f"`python -m ad_sim.generate --size tiny --split <train|seen|unseen> --out {root}`")
-    return bags
+    try:
+        return bags_under([root])
+    except BagError as exc:
+        hint = (f"; generate some with `python -m ad_sim.generate --size tiny --split <train|seen|unseen> "
+                f"--out {root}`" if root.exists() else "")
+        raise FileNotFoundError(f"{exc}{hint}") from None
 
 
 def _mcap_files(bag: Path) -> list[Path]:
