@@ -221,6 +221,27 @@ def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
         assert rows[label] == measured(RESULTS / file), f"experiments {heading!r} row {label!r} differs from {file}"
 
 
+def test_experiments_section_12_tables_are_the_saved_runs():
+    """Section 12: the camera-benchmark rows are the shipped model's and uni20's saved runs, and
+    the epoch table is the two histories."""
+    section = (RESULTS / "experiments" / "README.md").read_text().split("## 12. ", 1)[1]
+    rows = {cells(line)[0]: cells(line)[1:] for line in section.splitlines() if line.startswith("| ")}
+    runs = {"shipped `h3reg2`": ROOT / "docs" / "results" / "camera_resolution_paper_unseen_20.json",
+            "`uni20`": RESULTS / "experiments" / "uniformer20" / "camera_uni20_paper_unseen_20.json"}
+    for name, path in runs.items():
+        results = json.loads(path.read_text())["results"]
+        for camera in ("128x128 (simulator)", "object 1.33x larger", "object 0.8x smaller", "mask grown by 2 px of 512",
+                       "mask shrunk by 2 px of 512", "every 4th frame lost", "10% of frames lost at random"):
+            expected = cells(format_table({"25": results[camera]}).splitlines()[2])[1:]
+            assert rows[f"{camera}, {name}"] == expected, (camera, name)
+    uni, streaming = (json.loads((RESULTS / "experiments" / f).read_text())
+                      for f in ("uniformer20/uni20.history.json", "long_teacher/t30_s0.history.json"))
+    assert len(uni) == 6
+    for u, t in zip(uni, streaming):
+        assert rows[str(u["epoch"])] == [f"{u['val_regl1']:.3f}", f"{u['val_acc']:.3f}",
+                                         f"{t['val_regl1']:.3f}", f"{t['val_acc']:.3f}"]
+
+
 def test_readme_calibration_table_is_the_runtime_checks():
     """The README's uncertainty-calibration table is what the bundled model's saved runtime
     predictions give."""
