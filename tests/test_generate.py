@@ -118,6 +118,8 @@ def test_instance_file_one_shard_and_skip_particles(tmp_path):
     path.write_text(yaml.safe_dump(entries))
     run = generate("--instances", str(path), "--shard", "1/2", "--views", "2", "--skip-particles", "--out", str(tmp_path / "out"))
     assert run.wait(300) == 0, run.stdout.read()
+    said = [line for line in run.stdout.read().splitlines() if not line.startswith("Warp CUDA warning")]  # no GPU here
+    assert said == [f"{tmp_path / 'out' / 'mine-1of2'}: written"], said  # --quiet: no Warp banner or module lines
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["mine-1of2"]  # only the shard asked for
     bag = tmp_path / "out" / "mine-1of2"
     topics = BagReader(bag).topics()

@@ -8,7 +8,7 @@ import warp as wp
 
 from ad_sim import materials as M
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING  # no start-up banner or kernel-load lines
 N_MATRICES = 256
 
 

@@ -20,7 +20,7 @@ from ad_sim.mpm import (
     substeps_for,
 )
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING  # no start-up banner or kernel-load lines
 SPACING = DX / 2  # 8 particles per grid cell
 SOFT_JELLY = {"youngs_modulus": 3e4, "poissons_ratio": 0.25}
 PLASTICINE = {"youngs_modulus": 2e5, "poissons_ratio": 0.45, "yield_stress": 2e3}

@@ -151,7 +151,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--skip-particles", action="store_true", help="leave out /ad_sim/particles (60 KB a frame, hardly compressible): masks-only bags"
     )
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars, no Warp start-up messages")
     return parser
 
 
@@ -164,6 +164,10 @@ def main(argv: list[str] | None = None) -> int:
         for record in shape_records():
             print(json.dumps(record))
         return 0
+    if args.quiet:  # Warp's start-up banner and kernel-load lines too (before anything initialises it)
+        import warp
+
+        warp.config.log_level = warp.LOG_WARNING
     from .instances import benchmark, load_instance_file
     from .mpm import check_device
 
