@@ -129,7 +129,7 @@ def stop(proc: subprocess.Popen) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="./run_demo.sh", description=__doc__.split("\n\n")[0])
     parser.add_argument("--episodes", type=int, default=6, help="stop after this many estimates (tiny unseen has 6)")
     parser.add_argument("--size", default="tiny", choices=["tiny", "small", "paper"], help="benchmark size")
     parser.add_argument("--split", default="unseen", choices=["train", "seen", "unseen"])

@@ -5,7 +5,10 @@
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
-./setup.sh
+case " $* " in
+  *" -h "*|*" --help "*) [[ -x .venv/bin/python ]] || ./setup.sh ;;  # help needs the environment, not a re-check
+  *) ./setup.sh ;;
+esac
 set +u  # the venv's and colcon's setup scripts read unset variables
 . ./env.sh
 set -u

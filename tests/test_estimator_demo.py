@@ -49,3 +49,11 @@ def test_ctrl_c_stops_the_demo_and_its_nodes_cleanly(tmp_path, ros_domain_id):
     assert "Traceback" not in err and "demo: interrupted" in err, err
     leftovers = subprocess.run(["pgrep", "-f", str(model)], capture_output=True, text=True).stdout.split()
     assert leftovers == [], f"estimator node still running: {leftovers}"
+
+
+def test_run_demo_help_answers_without_re_running_setup():
+    """`./run_demo.sh --help` on a set-up checkout: the demo's options, without setup's checks first."""
+    result = subprocess.run([str(REPO / "run_demo.sh"), "--help"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("usage: ./run_demo.sh") and "--episodes" in result.stdout
+    assert "up to date" not in result.stdout + result.stderr  # setup.sh's re-run lines
