@@ -203,7 +203,7 @@ def test_a_bag_that_cannot_be_read_is_skipped_and_the_others_kept(setup, tmp_pat
 def test_a_damaged_bag_points_at_recover(setup, tmp_path, capsys):
     """A chunk of the last episode's frames corrupted in the copy: without --recover the bag is
     refused and the hint is --recover (not the output policy); with it, the other episodes come out."""
-    model, _ = setup
+    model, intact = setup
     bag = write_test_bag(tmp_path / "bag", chunk_size=64 * 1024)
     file = next(bag.glob("*.mcap"))
     with open(file, "rb") as f:
@@ -218,7 +218,10 @@ def test_a_damaged_bag_points_at_recover(setup, tmp_path, capsys):
     assert "Pass --recover to read the undamaged part" in err and "output-policy" not in err, err
     with pytest.warns(UserWarning, match=r"corrupt record .*skipped"):
         assert run(model, bag, "--recover", "--out", tmp_path / "r.csv") == 0
-    assert [r["episode"] for r in read_csv(tmp_path / "r.csv")][:2] == ["1", "2"]
+    rows = read_csv(tmp_path / "r.csv")
+    assert [(r["episode"], r["frames_used"], r["complete"]) for r in rows] == [("1", "25", "True"), ("2", "25", "True")]
+    assert run(model, intact, "--out", tmp_path / "i.csv") == 0  # the episodes before the damage: as from an intact copy
+    assert [r["p_jelly"] for r in rows] == [r["p_jelly"] for r in read_csv(tmp_path / "i.csv")[:2]]
 
 
 def test_clear_errors_before_any_work(setup, tmp_path, capsys):

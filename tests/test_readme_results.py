@@ -225,15 +225,20 @@ def test_experiments_section_12_tables_are_the_saved_runs():
     """Section 12: the camera-benchmark rows are the shipped model's and uni20's saved runs, and
     the epoch table is the two histories."""
     section = (RESULTS / "experiments" / "README.md").read_text().split("## 12. ", 1)[1]
-    rows = {cells(line)[0]: cells(line)[1:] for line in section.splitlines() if line.startswith("| ")}
+    rows = {cells(line.strip())[0]: cells(line.strip())[1:] for line in section.splitlines()
+            if line.strip().startswith("| ")}  # also the table indented in a list item
     runs = {"shipped `h3reg2`": ROOT / "docs" / "results" / "camera_resolution_paper_unseen_20.json",
             "`uni20`": RESULTS / "experiments" / "uniformer20" / "camera_uni20_paper_unseen_20.json"}
-    for name, path in runs.items():
-        results = json.loads(path.read_text())["results"]
-        for camera in ("128x128 (simulator)", "object 1.33x larger", "object 0.8x smaller", "mask grown by 2 px of 512",
-                       "mask shrunk by 2 px of 512", "every 4th frame lost", "10% of frames lost at random"):
-            expected = cells(format_table({"25": results[camera]}).splitlines()[2])[1:]
+    cameras = ("object 1.33x larger", "object 0.8x smaller", "mask grown by 2 px of 512", "mask shrunk by 2 px of 512",
+               "every 4th frame lost", "10% of frames lost at random")
+    results = {name: json.loads(path.read_text())["results"] for name, path in runs.items()}
+    for name, result in results.items():
+        for camera in ("128x128 (simulator)", *cameras):
+            expected = cells(format_table({"25": result[camera]}).splitlines()[2])[1:]
             assert rows[f"{camera}, {name}"] == expected, (camera, name)
+    for camera in cameras:  # the sensitivity table: each camera against the model's own simulator-mask RegL1
+        assert rows[camera] == [f"{r[camera]['regl1'] - r['128x128 (simulator)']['regl1']:+.3f}"
+                                for r in results.values()], camera
     uni, streaming = (json.loads((RESULTS / "experiments" / f).read_text())
                       for f in ("uniformer20/uni20.history.json", "long_teacher/t30_s0.history.json"))
     assert len(uni) == 6

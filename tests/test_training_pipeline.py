@@ -3,6 +3,7 @@ evaluated ONNX model and re-running it resumes instead of redoing."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -116,12 +117,17 @@ def test_user_errors_are_one_line_without_traceback(tmp_path, capsys, monkeypatc
 def test_evaluate_says_when_not_every_episode_was_scored(tmp_path, capsys):
     """bags/samples: 2 episodes with particles, 6 masks-only ones that this evaluation cannot use.
     It scores the 2 and says, last, that the others were left out and which command scores them."""
-    model = REPO / "ros_ws" / "src" / "ad_estimator" / "ad_estimator" / "models" / "default.onnx"
-    for _ in range(2):  # decoding the bags, then from the cache
+    bundled = REPO / "ros_ws" / "src" / "ad_estimator" / "ad_estimator" / "models"
+    for name in ("default.onnx", "default.frame.onnx"):  # a copy: this evaluation records next to the model
+        shutil.copy(bundled / name, tmp_path / name)
+    model = tmp_path / "default.onnx"
+    for record in (["--no-record"], []):  # decoding the bags, then from the cache
         assert main(["evaluate", "--model", str(model), "--bags", str(REPO / "bags" / "samples"), "--cache",
-                     str(tmp_path / "c"), "--out", str(tmp_path / "r"), "--no-record", "--no-progress"]) == 0
+                     str(tmp_path / "c"), "--out", str(tmp_path / "r"), "--no-progress", *record]) == 0
         last = capsys.readouterr().err.splitlines()[-1]
         assert "only 2 complete episodes" in last and "ros2 run ad_estimator evaluate" in last, last
         source = json.loads((tmp_path / "r" / "predictions.json").read_text())
         assert source["episodes"] == 2
         assert any("unseen-masks-0of1 holds no complete episode" in p for p in source["source_problems"])
+    recorded = json.loads((tmp_path / "default.metrics.json").read_text())["evaluation"]["samples"]
+    assert recorded["episodes"] == 2 and recorded["source_problems"] == source["source_problems"]

@@ -80,12 +80,13 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
     results = write_evaluation(by_frames, out, title, {"model_id": model.model_id, "model_path": str(model_path),
                                                         "episodes": len(ds), "source_problems": ds.problems})
     if record:
-        print(f"recorded in {update_model_metrics(model_path, {'evaluation': {Path(bags).name: summary(results)}})}")
+        entry = {**summary(results), "episodes": len(ds)} | ({"source_problems": ds.problems} if ds.problems else {})
+        print(f"recorded in {update_model_metrics(model_path, {'evaluation': {Path(bags).name: entry}})}")
     print_results(results, title, out)
     if ds.problems:
-        print(f"warning: only {len(ds)} complete episodes under {bags} were scored; the bags' problems are listed "
-              f"above and in predictions.json. Masks-only bags (--skip-particles) need `ros2 run ad_estimator "
-              f"evaluate`, which scores them", file=sys.stderr)
+        print(f"warning: only {len(ds)} complete episodes under {bags} were scored; {len(ds.problems)} problem(s) "
+              f"in the bags are listed above and in predictions.json (masks-only bags, from --skip-particles, are "
+              f"scored by `ros2 run ad_estimator evaluate`)", file=sys.stderr)
     return results
 
 

@@ -273,7 +273,9 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     results, problems = evaluation.predictions, evaluation.problems()
     if not results[count]:
-        images = sorted({t for bag in bags for t in image_topics(BagReader(bag, recover=True).topics())})
+        with warnings.catch_warnings():  # the bags' own problems were said while reading them
+            warnings.simplefilter("ignore")
+            images = sorted({t for bag in bags for t in image_topics(BagReader(bag, recover=True).topics())})
         hint = "" if args.topic in images else f"; the bags' image topics: {', '.join(images) or 'none'} " \
                                                 "(pass one with --topic)"
         print(f"evaluate: no episode with {count} frames on {args.topic} in {[str(b) for b in args.bags]}"

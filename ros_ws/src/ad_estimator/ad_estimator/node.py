@@ -116,6 +116,7 @@ class EstimatorNode(Node):
         self._window_generation = 0
         self._stop = threading.Event()
         self._last_frame_time = time.monotonic()
+        self._unheard_publisher = False  # an incompatible publisher was seen and no frame has arrived since
         self.warn = Throttle(self.get_logger().warning)
 
         reliability = ReliabilityPolicy.RELIABLE if p["reliable"] else ReliabilityPolicy.BEST_EFFORT
@@ -167,16 +168,18 @@ class EstimatorNode(Node):
         reliable:=true): DDS delivers nothing from it, so say so and how to fix it."""
         with self._lock:
             self.counters["incompatible_publishers"] = event.total_count
-        policy = QoSPolicyKind(event.last_policy_kind).name.lower()
-        fix = ("set -p reliable:=false, or make the camera publish reliably" if self.subscription.qos_profile.reliability
-               == ReliabilityPolicy.RELIABLE else "check the publisher's QoS")
+        self._unheard_publisher = True  # until a frame arrives: then the camera was fixed
+        policy = QoSPolicyKind(event.last_policy_kind)
+        fix = ("set -p reliable:=false, or make the camera publish reliably" if policy == QoSPolicyKind.RELIABILITY
+               else f"make the publisher's {policy.name.lower()} QoS compatible")
         self.get_logger().error(f"a publisher on {self.input_topic} offers QoS incompatible with this subscription "
-                                f"({policy}): no frames from it will arrive; {fix}")
+                                f"({policy.name.lower()}): no frames from it will arrive; {fix}")
 
     def on_image(self, msg: Image) -> None:
         """Subscription callback: header checks only, then the bounded queue."""
         arrival = time.perf_counter()
         self._count("received")
+        self._unheard_publisher = False
         try:
             check_header(msg.height, msg.width, msg.encoding, msg.step, self.max_pixels)
         except ImageRejected as exc:
@@ -347,8 +350,8 @@ class EstimatorNode(Node):
         status.name = f"{self.get_fully_qualified_name()}: material estimator"
         status.hardware_id = self.info.model_id
         problems = [f"{recent[k]} frames {k}" for k in ("dropped", "rejected") if recent[k]]
-        if stats["incompatible_publishers"]:
-            problems.append(f"{stats['incompatible_publishers']} input publisher(s) with incompatible QoS")
+        if self._unheard_publisher:
+            problems.append(f"no frames; {stats['incompatible_publishers']} input publisher(s) with incompatible QoS seen")
         status.level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
         status.message = "; ".join(problems) or "ok"
         values = {

@@ -48,10 +48,11 @@ class ShardMismatch(ValueError):
 
 def shard_settings(instances: list, views: int | None, skip: frozenset[str], compression: str, max_bag_size: int) -> dict:
     """What decides a shard's content, as recorded in its DONE marker."""
-    episodes = [[i.episode_id, i.material, i.parameters, i.seed, i.views] for i in instances]
+    episodes = [[i.episode_id, i.split, i.shape, i.material, i.parameters, i.seed] for i in instances]
     return {
         "episodes": hashlib.sha256(json.dumps(episodes, sort_keys=True).encode()).hexdigest(),
-        "views": views, "skip": sorted(skip), "compression": compression, "max_bag_size": max_bag_size,
+        "views": sorted({views or i.views for i in instances}),  # as simulated: --views 1 on unseen is the default
+        "skip": sorted(skip), "compression": compression, "max_bag_size": max_bag_size,
     }
 
 

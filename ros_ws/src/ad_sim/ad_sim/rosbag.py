@@ -71,7 +71,7 @@ class BagDamaged(BagError):
     """Part of a bag file is damaged or missing (a killed writer, a corrupt copy); recover=True reads the rest."""
 
 
-RECOVER_ADVICE = "pass --recover (BagReader(recover=True)) to read the rest of the bag"
+RECOVER_ADVICE = "pass --recover (BagReader(recover=True)) to read what is readable"
 
 
 # --------------------------------------------------------------------------- schemas
