@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 import yaml
-from ros_procs import kill_leftovers, ADRUN, REPO_ROOT, recorder_counts, start, stop
+from ros_procs import kill_leftovers, ADRUN, REPO_ROOT, recorder_counts, start, stop, wait_for_log
 from sim_fixtures import as_plain
 
 from ad_sim.rosbag import BagReader
@@ -112,7 +112,7 @@ def test_pacing_and_clean_shutdown(rclpy_context, ros_domain_id, tmp_path):
 def test_single_instance_from_parameters_and_bad_parameters(ros_domain_id, tmp_path):
     node = start(
         "node", ros_domain_id, tmp_path / "one.log", shape="sphere", material="sand",
-        friction_angle=0.5, instance_seed=9, real_time_factor=0.0,
+        friction_angle=0.5, instance_seed=9, real_time_factor=0,  # an int where a float is declared: taken
     )
     assert node.wait(120) == 0, (tmp_path / "one.log").read_text()
     log = (tmp_path / "one.log").read_text()
@@ -124,6 +124,41 @@ def test_single_instance_from_parameters_and_bad_parameters(ros_domain_id, tmp_p
     node = start("node", ros_domain_id, tmp_path / "bad2.log", shape="sphere", material="jelly", youngs_modulus=1.0)
     assert node.wait(60) == 2
     assert "youngs_modulus" in (tmp_path / "bad2.log").read_text()
+
+
+@pytest.mark.parametrize("executable, params, expected", [
+    ("node", {"seed": 1.5}, "Trying to set parameter 'seed' to '1.5' of type 'DOUBLE', expecting type 'INTEGER'"),
+    ("node", {"views": -1}, "views must be >= 0, got -1"),
+    ("node", {"batch": 0}, "batch must be >= 1, got 0"),
+    ("node", {"qos_depth": -3}, "qos_depth must be >= 1, got -3"),
+    ("node", {"real_time_factor": "abc"}, "real_time_factor must be a number, got 'abc'"),
+    ("node", {"shape": "sphere", "youngs_modulus": "abc"}, "youngs_modulus must be a number, got 'abc'"),
+    ("node", {"topic_prefix": "1bad"}, "Invalid topic name: topic name token must not start with a number: '1bad/instance'"),
+    ("record", {"flush_period": 0}, "flush_period must be a positive number of seconds, got 0.0"),
+    ("record", {"topics": "/ad_sim/view_0/mask"}, "expecting type 'STRING_ARRAY'"),
+    ("record", {"output": "/proc/nope/bag"}, "cannot write the bag: [Errno 2] No such file or directory: '/proc/nope'"),
+])
+def test_bad_parameter_values_are_one_line(executable, params, expected, ros_domain_id, tmp_path):
+    """Wrong types, out-of-range values and unusable paths: exit 2 and one line naming the parameter,
+    before anything is published or written."""
+    process = start(executable, ros_domain_id, tmp_path / "bad.log", **params)
+    assert process.wait(60) == 2
+    log = (tmp_path / "bad.log").read_text()
+    assert log.splitlines() == [f"ad_sim {executable}: " + log.split(": ", 1)[1].rstrip()] and expected in log, log
+
+
+def test_ctrl_c_does_not_wait_for_a_recorder_that_died(rclpy_context, ros_domain_id, tmp_path):
+    """A subscriber killed while the node waits for its acknowledgements: SIGINT still ends the node
+    within about a second, not after ACK_TIMEOUT (10 s) per topic."""
+    recorder = start("record", ros_domain_id, tmp_path / "record.log", output=str(tmp_path / "bag"))
+    node = start("node", ros_domain_id, tmp_path / "node.log", real_time_factor=0, loop=True, wait_for_subscribers=1)
+    wait_for_log(tmp_path / "node.log", r"episode 1:", node, timeout=120)
+    recorder.send_signal(signal.SIGKILL)
+    recorder.wait()
+    time.sleep(1.0)  # the node now blocks on acknowledgements that will not come
+    started = time.monotonic()
+    assert stop(node, signal.SIGINT) == 0
+    assert time.monotonic() - started < 5.0, (tmp_path / "node.log").read_text()  # was 10 s and more
 
 
 def test_help_lists_the_parameters():

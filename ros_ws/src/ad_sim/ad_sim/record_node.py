@@ -11,15 +11,15 @@ leaves every flushed chunk readable (chunks are flushed every flush_period secon
 
 from __future__ import annotations
 
+import math
 import signal
 import threading
 import time
 from datetime import datetime, timezone
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.exceptions import ParameterUninitializedException
+from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -27,7 +27,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from . import messages
 from .rosbag import BagError, BagWriter, header_stamp_ns, load_schema, qos_profile, starts_with_header
-from .sim_node import handle_help, import_message_class
+from .sim_node import declare_parameters, handle_help, import_message_class, number
 
 DRAIN_IDLE = 0.3  # s without incoming work after a stop signal before the bag is closed
 
@@ -66,9 +66,12 @@ PARAMETERS = (
 class RecordNode(Node):
     def __init__(self):
         super().__init__("ad_sim_record")
-        for name, default, meaning in PARAMETERS:
-            self.declare_parameter(name, default, ParameterDescriptor(description=meaning))
+        declare_parameters(self, PARAMETERS)
         get = lambda name: self.get_parameter(name).value  # noqa: E731
+        periods = {name: number(self, name) for name in ("discovery_period", "flush_period")}
+        for name, seconds in periods.items():
+            if not 0 < seconds < math.inf:
+                raise ValueError(f"{name} must be a positive number of seconds, got {seconds}")
         output = get("output") or f"bags/record-{datetime.now(timezone.utc):%Y%m%d-%H%M%S}"
         try:
             self.wanted = {t for t in get("topics") if t}
@@ -84,8 +87,8 @@ class RecordNode(Node):
         self.subscriptions_by_topic = {}
         self.unrecordable: set[str] = set()
         self._unflushed = False
-        self.create_timer(get("discovery_period"), self.discover)
-        self.create_timer(get("flush_period"), self.flush)
+        self.create_timer(periods["discovery_period"], self.discover)
+        self.create_timer(periods["flush_period"], self.flush)
         self.get_logger().info(
             f"recording {'topics ' + ', '.join(sorted(self.wanted)) if self.wanted else 'simulator topics under ' + self.prefix} to {output}"
         )
@@ -174,8 +177,11 @@ def main(args: list[str] | None = None) -> None:
             if sum(node.received.values()) != seen:
                 idle_since, seen = time.monotonic(), sum(node.received.values())
         node.close()
-    except BagError as exc:
+    except (ValueError, ParameterException) as exc:  # bad parameters (a BagError is a ValueError)
         print(f"ad_sim record: {exc}")
+        raise SystemExit(2) from None
+    except OSError as exc:  # an output folder that cannot be made
+        print(f"ad_sim record: cannot write the bag: {exc}; pass another -p output:=...")
         raise SystemExit(2) from None
     finally:
         if node is not None:

@@ -30,6 +30,7 @@ import time
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
+from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -41,6 +42,7 @@ from .dds import non_ros_args, use_fast_heartbeat
 
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
+ACK_SLICE = 0.1  # s between looks at the stop flag while waiting for acknowledgements
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
 
 
@@ -89,9 +91,11 @@ def ros_qos(qos: dict) -> QoSProfile:
 class SimPublishers:
     """Publishers of the simulator topics with the flow control described above."""
 
-    def __init__(self, node: Node, views: int, prefix: str = messages.DEFAULT_PREFIX, depth: int = messages.QOS_DEPTH):
+    def __init__(self, node: Node, views: int, prefix: str = messages.DEFAULT_PREFIX, depth: int = messages.QOS_DEPTH,
+                 stop: threading.Event | None = None):
         self.logger = node.get_logger()
         self.depth = depth
+        self.stop = stop or threading.Event()  # once set, nobody waits for acknowledgements (a stopping node)
         self.by_topic = {}
         for topic, type_name in messages.topic_types(views, prefix).items():
             qos = ros_qos(dict(messages.topic_qos(topic, prefix), depth=depth))
@@ -112,9 +116,16 @@ class SimPublishers:
         self.published += 1
 
     def wait_for_acks(self, topics=None) -> None:
+        """Up to ACK_TIMEOUT per topic, in slices, so that a stop (a Ctrl-C while a subscriber is
+        gone or stalled) ends the wait within a slice instead of seconds later."""
         for topic in self.by_topic if topics is None else topics:
-            if not self.by_topic[topic][1].wait_for_all_acked(Duration(seconds=ACK_TIMEOUT)):
-                self.logger.warning(f"subscribers of {topic} did not acknowledge within {ACK_TIMEOUT} s")
+            deadline = time.monotonic() + ACK_TIMEOUT
+            while not self.by_topic[topic][1].wait_for_all_acked(Duration(seconds=ACK_SLICE)):
+                if self.stop.is_set():
+                    break
+                if time.monotonic() >= deadline:
+                    self.logger.warning(f"subscribers of {topic} did not acknowledge within {ACK_TIMEOUT} s")
+                    break
             self.unacknowledged[topic] = 0
 
     def matched(self, count: int) -> bool:
@@ -153,6 +164,22 @@ def parameter_help(parameters) -> str:
     )
 
 
+def declare_parameters(node: Node, parameters) -> None:
+    """Declares (name, default, meaning) parameters. Those with a float default take ints as well
+    (`real_time_factor:=0`, `youngs_modulus:=1500000`): read them with `number`."""
+    for name, default, meaning in parameters:
+        node.declare_parameter(name, default, ParameterDescriptor(description=meaning,
+                                                                  dynamic_typing=isinstance(default, float)))
+
+
+def number(node: Node, name: str) -> float:
+    """A float parameter's value; ValueError naming the parameter if it is not a number."""
+    value = node.get_parameter(name).value
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    return float(value)
+
+
 def handle_help(prog: str, doc: str, parameters, args: list[str] | None) -> None:
     """The command line of a node whose knobs are ROS parameters: `--help` prints the description
     and parameters and exits; anything else outside `--ros-args ...` is a usage error (exit 2)."""
@@ -169,18 +196,20 @@ class SimNode(Node):
     def __init__(self, stop: threading.Event):
         super().__init__("ad_sim")
         self.stop = stop
-        for name, default, meaning in PARAMETERS:
-            # dynamic typing for the physical parameters: 1500000 and 1.5e6 alike
-            self.declare_parameter(name, default, ParameterDescriptor(description=meaning, dynamic_typing=name in SINGLE_INSTANCE_PARAMETERS))
+        declare_parameters(self, PARAMETERS)
         self.param = lambda name: self.get_parameter(name).value
-        self.rate = float(self.param("real_time_factor"))
-        if self.rate < 0:
+        self.rate = number(self, "real_time_factor")
+        if not 0 <= self.rate < math.inf:
             raise ValueError("real_time_factor must be >= 0 (0 = as fast as possible)")
+        for name, least in (("seed", 0), ("instance_seed", 0), ("views", 0), ("batch", 1), ("qos_depth", 1),
+                            ("wait_for_subscribers", 0)):
+            if self.param(name) < least:
+                raise ValueError(f"{name} must be >= {least}, got {self.param(name)}")
         self.prefix = self.param("topic_prefix").rstrip("/")
         self.instances = self._load_instances()
-        self.views = int(self.param("views")) or max(instance.views for instance in self.instances)
-        self.sim_publishers = SimPublishers(self, self.views, self.prefix, int(self.param("qos_depth")))
-        self.episodes = queue.Queue(maxsize=2 * int(self.param("batch")))
+        self.views = self.param("views") or max(instance.views for instance in self.instances)
+        self.sim_publishers = SimPublishers(self, self.views, self.prefix, self.param("qos_depth"), stop)
+        self.episodes = queue.Queue(maxsize=2 * self.param("batch"))
         self.failed = False
 
     def _load_instances(self) -> list:
@@ -189,7 +218,8 @@ class SimNode(Node):
         if self.param("instances"):
             found = library.load_instance_file(self.param("instances"))
         elif self.param("shape"):
-            parameters = {n: float(self.param(n)) for n in SINGLE_INSTANCE_PARAMETERS if not math.isnan(float(self.param(n)))}
+            values = {n: number(self, n) for n in SINGLE_INSTANCE_PARAMETERS}
+            parameters = {n: v for n, v in values.items() if not math.isnan(v)}
             entry = {"shape": self.param("shape"), "material": self.param("material"), "parameters": parameters, "seed": self.param("instance_seed")}
             # The same validation as an instance-file entry (instances owns it).
             found = [library.instance_from_entry(entry, 0, "node parameters")]
@@ -298,8 +328,11 @@ def main(args: list[str] | None = None) -> None:
         spinner.join()
         if node.failed:
             raise SystemExit(1)
-    except (OSError, ValueError) as exc:  # bad parameters or instance file
+    except (OSError, ValueError, ParameterException) as exc:  # bad parameters or instance file
         print(f"ad_sim node: {exc}", flush=True)
+        raise SystemExit(2) from None
+    except NameValidationException as exc:  # e.g. topic_prefix; its message has a third line, a caret
+        print(f"ad_sim node: {' '.join(line.strip() for line in str(exc).splitlines()[:2])}", flush=True)
         raise SystemExit(2) from None
     finally:
         if node is not None:
