@@ -180,8 +180,18 @@ def test_estimate_service_answers_a_clip(ros, model_paths):
     response = future.result()
     assert response.success, response.message
     ((_, expected),) = offline(model_paths["streaming"], masks, [k * DT for k in range(25)])
-    assert response.estimate.complete and response.estimate.frames_used == 25
+    assert response.estimate.complete and response.estimate.frames_used == 25 and response.message == ""
     np.testing.assert_allclose(response.estimate.class_probabilities, expected.probabilities, rtol=1e-6)
+
+    # A 5 s gap after frame 10: the frames after it are past the 25 slots. An estimate, said to be partial.
+    gapped = EstimateMaterial.Request(frames=[image_msg(m, k * DT + (5 * 10**9 if k > 10 else 0))
+                                              for k, m in enumerate(masks)])
+    future = client.call_async(gapped)
+    assert wait_for(future.done) and future.result().success
+    assert future.result().estimate.frames_used == 12  # frame 10 also fills slot 11, within the slot tolerance
+    assert future.result().message == ("partial: 12 of the model's 25 frame slots filled from 25 frames; slots are "
+                                       "25 ms apart from the first frame's stamp, and frames past the last slot are "
+                                       "not used")
 
     bad = EstimateMaterial.Request(frames=[image_msg(masks[0].astype(np.float32), 0, encoding="32FC1")])
     future = client.call_async(bad)

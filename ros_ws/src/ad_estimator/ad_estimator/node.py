@@ -287,6 +287,11 @@ class EstimatorNode(Node):
         try:
             response.estimate = self.estimate_clip(list(request.frames))
             response.success = True
+            if (used := response.estimate.frames_used) < self.info.frame_count:  # an estimate, but from less
+                response.message = (
+                    f"partial: {used} of the model's {self.info.frame_count} frame slots filled from "
+                    f"{len(request.frames)} frames; slots are {self.info.frame_interval * 1e3:g} ms apart from the "
+                    "first frame's stamp, and frames past the last slot are not used")
         except ValueError as exc:  # bad clip (ImageRejected is one)
             response.success = False
             response.message = str(exc)
