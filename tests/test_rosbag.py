@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -244,6 +245,35 @@ def test_corrupt_chunk_names_file_and_offset(tmp_path):
     with pytest.warns(UserWarning, match="corrupt"):
         recovered = list(BagReader(path, recover=True))
     assert len(recovered) < len(written)
+
+
+def test_repair_makes_a_killed_writers_bag_whole_for_any_reader(tmp_path, capsys):
+    """A copy of a bag whose writer never closed it (what kill -9 leaves: no summaries, metadata.yaml
+    counting nothing): `repair` rewrites the flushed messages as a bag that rosbags, an independent
+    reader, takes, with the true counts and each topic's offered QoS."""
+    writer = BagWriter(tmp_path / "open")
+    write_episodes(writer, [fabricated_episode(0), fabricated_episode(1)], 0)
+    writer.flush()
+    shutil.copytree(tmp_path / "open", tmp_path / "killed")  # before close: as a kill -9 leaves it
+    writer.close()
+    with pytest.raises(rosbag.BagDamaged, match="--recover"):
+        list(BagReader(tmp_path / "killed"))
+    with pytest.warns(UserWarning):
+        recovered = [(m.topic, m.log_time_ns, m.message) for m in BagReader(tmp_path / "killed", raw=True, recover=True)]
+    assert len(recovered) == 2 * 76
+
+    assert rosbag.main(["repair", str(tmp_path / "killed"), "--out", str(tmp_path / "fixed")]) == 0
+    assert f"{tmp_path / 'fixed'}: {len(recovered)} messages written" in capsys.readouterr().out
+    assert [(m.topic, m.log_time_ns, m.message) for m in BagReader(tmp_path / "fixed", raw=True)] == recovered
+    metadata = yaml.safe_load((tmp_path / "fixed" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert metadata["message_count"] == len(recovered)
+    qos = {t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"][0]
+           for t in metadata["topics_with_message_count"]}
+    assert qos[messages.instance_topic()]["durability"] == "transient_local"  # latched, as recorded
+    with AnyReader([tmp_path / "fixed"]) as reader:
+        assert sum(1 for _ in reader.messages()) == len(recovered)
+    assert rosbag.main(["repair", str(tmp_path / "killed"), "--out", str(tmp_path / "fixed")]) == 1
+    assert "already exists" in capsys.readouterr().err
 
 
 def test_unknown_schema_encoding_is_a_clear_error(tmp_path):

@@ -821,6 +821,28 @@ def _info(path: Path) -> None:
         print(f"  {topic:40s} {types[topic]:32s} {counts.get(topic, 0)}")
 
 
+def repair(source: str | os.PathLike, out: str | os.PathLike, compression: str = "zstd") -> int:
+    """Rewrites what is readable of a damaged bag (a killed recorder's, a corrupt copy) as a complete
+    one at `out`: every file with its summary, metadata.yaml with the true counts, so that other
+    readers (ros2 bag, rosbags, Foxglove) take it. Topics keep their type and the offered QoS that
+    the source's metadata.yaml lists; publish times become log times. What could not be read is
+    warned about, as BagReader(recover=True) does. Returns the number of messages written."""
+    reader = BagReader(source, raw=True, recover=True)
+    listed = {entry["topic_metadata"]["name"]: entry["topic_metadata"]
+              for entry in (reader.metadata or {}).get("topics_with_message_count", [])}
+    count = 0
+    with BagWriter(out, compression=compression, custom_data={"repaired_from": str(source)}) as writer:
+        for topic, type_name in reader.topics().items():
+            qos = listed.get(topic, {}).get("offered_qos_profiles")
+            if isinstance(qos, str):  # rosbag2 before format 9 kept them as a YAML string
+                qos = yaml.safe_load(qos)
+            writer.add_topic(topic, type_name, qos or None)
+        for message in reader:
+            writer.write(message.topic, message.log_time_ns, message.message)
+            count += 1
+    return count
+
+
 def one_line_warnings() -> None:
     """For command lines: print BagReader's warnings (recovered files, extra files) as
     `warning: <message>`, without Python's source-line decoration."""
@@ -833,12 +855,18 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     info = sub.add_parser("info", help="print the topics, types and message counts of a bag")
     info.add_argument("bag", type=Path, help="bag folder or .mcap file")
+    fix = sub.add_parser("repair", help="rewrite what is readable of a damaged bag (a killed recorder's) as a "
+                                        "complete bag that any reader takes")
+    fix.add_argument("bag", type=Path, help="damaged bag folder or .mcap file")
+    fix.add_argument("--out", type=Path, required=True, help="new bag folder (must not exist)")
     vendor = sub.add_parser("vendor-schemas", help="regenerate ad_sim/data/schemas from the installed ROS interfaces")
     vendor.add_argument("--out", type=Path, default=SCHEMA_DIR, help="output folder (default: %(default)s)")
     args = parser.parse_args(argv)
     try:
         if args.command == "info":
             _info(args.bag)
+        elif args.command == "repair":
+            print(f"{args.out}: {repair(args.bag, args.out)} messages written")
         else:
             for path in vendor_schemas(args.out):
                 print(path)
