@@ -117,6 +117,14 @@ def test_replay_refuses_bad_timing_options_before_starting(test_bag, options, me
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
 
 
+def test_replay_wait_for_names_the_bags_topics(test_bag, ros_domain_id):
+    proc = run("ad_estimator.replay", str(test_bag), "--wait-for", "/camera/mask", "--wait-timeout", "1", "--quiet")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and "Traceback" not in out, out
+    assert "--wait-for /camera/mask: not a replayed topic; name one of the bag's topics (/ad_sim/instance, " \
+           "/ad_sim/view_0/mask)" in out, out
+
+
 def test_replay_missing_bag(tmp_path, ros_domain_id):
     proc = run("ad_estimator.replay", str(tmp_path / "nothing"))
     out, _ = proc.communicate(timeout=60)

@@ -95,7 +95,8 @@ class Replayer:
         deadline = time.monotonic() + timeout
         for topic in topics:
             if topic not in self.publishers:
-                raise BagError(f"--wait-for {topic}: not a replayed topic")
+                raise BagError(f"--wait-for {topic}: not a replayed topic; name one of the bag's topics "
+                               f"({', '.join(sorted(self.publishers))}), as recorded, even if remapped")
             while self.publishers[topic].get_subscription_count() == 0:
                 if time.monotonic() > deadline:
                     raise TimeoutError(f"no subscriber on {topic} after {timeout:.1f} s")
@@ -136,7 +137,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor (2 = twice as fast)")
     parser.add_argument("--topics", nargs="+", help="replay only these topics (default: all)")
     parser.add_argument("--wait-for", nargs="+", default=[], metavar="TOPIC",
-                        help="before starting, wait until each of these topics has a subscriber")
+                        help="before starting, wait until each of these topics has a subscriber (the bag's topic "
+                             "names, as --topics takes them, even when remapped with --ros-args -r)")
     parser.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for --wait-for")
     parser.add_argument("--delay", type=float, default=0.5,
                         help="seconds between creating publishers and the first message (discovery)")
