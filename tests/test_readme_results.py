@@ -239,6 +239,9 @@ def test_experiments_section_12_tables_are_the_saved_runs():
     for camera in cameras:  # the sensitivity table: each camera against the model's own simulator-mask RegL1
         assert rows[camera] == [f"{r[camera]['regl1'] - r['128x128 (simulator)']['regl1']:+.3f}"
                                 for r in results.values()], camera
+    for label, file in (("unseen, shipped `h3reg2` (CPU-regenerated split)", "shipped_unseen_cpu.json"),
+                        ("unseen, `uni20` (CPU-regenerated split)", "uni20_unseen.json")):
+        assert rows[label] == measured(RESULTS / "experiments" / "uniformer20" / file), label
     uni, streaming = (json.loads((RESULTS / "experiments" / f).read_text())
                       for f in ("uniformer20/uni20.history.json", "long_teacher/t30_s0.history.json"))
     assert len(uni) == 6
