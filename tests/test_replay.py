@@ -125,6 +125,17 @@ def test_replay_wait_for_names_the_bags_topics(test_bag, ros_domain_id):
            "/ad_sim/view_0/mask)" in out, out
 
 
+def test_replay_of_a_bag_without_messages_says_so(tmp_path, ros_domain_id):
+    from ad_sim import messages
+    from ad_sim.rosbag import BagWriter
+
+    with BagWriter(tmp_path / "empty") as writer:
+        writer.add_topic(messages.mask_topic(0), messages.IMAGE_TYPE)
+    proc = run("ad_estimator.replay", str(tmp_path / "empty"), "--quiet", "--delay", "0")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and "published 0 messages" in out and "(it holds none on the replayed topics)" in out, out
+
+
 def test_replay_missing_bag(tmp_path, ros_domain_id):
     proc = run("ad_estimator.replay", str(tmp_path / "nothing"))
     out, _ = proc.communicate(timeout=60)

@@ -159,6 +159,8 @@ def test_ctrl_c_does_not_wait_for_a_recorder_that_died(rclpy_context, ros_domain
     started = time.monotonic()
     assert stop(node, signal.SIGINT) == 0
     assert time.monotonic() - started < 5.0, (tmp_path / "node.log").read_text()  # was 10 s and more
+    log = (tmp_path / "node.log").read_text()
+    assert re.search(r"published (\d+) episode\(s\) \(episode \1 cut short by the stop\)", log), log
 
 
 def test_help_lists_the_parameters():

@@ -170,6 +170,7 @@ def main(args=None) -> int:
         count = replayer.run(options.rate, progress=not options.quiet)
         acked = replayer.wait_for_acknowledgments(5.0)
         print(f"replay: published {count} messages from {options.bag}"
+              + ("" if count else " (it holds none on the replayed topics)")
               + ("" if acked else " (some reliable subscribers did not acknowledge everything)"), file=sys.stderr)
     except (BagError, TimeoutError) as exc:
         print(f"replay: {exc}", file=sys.stderr)

@@ -281,7 +281,8 @@ class SimNode(Node):
         worker.start()
         self._wait_for_subscribers()
         frame_prefix = self.param("frame_id")
-        index = 0
+        index = 0  # episodes started; `played` counts those published whole
+        played = 0
         clock_start = None  # wall time of stamp 0 when paced
         while not self.stop.is_set():
             try:
@@ -304,9 +305,12 @@ class SimNode(Node):
                     self._sleep_until(clock_start + offset)
                 last_stamp = stamp
                 self.sim_publishers.publish(topic, data)
+            else:
+                played += 1
             index += 1
         self.sim_publishers.wait_for_acks()
-        self.get_logger().info(f"published {index} episode(s), {self.sim_publishers.published} messages")
+        cut = f" (episode {index - 1} cut short by the stop)" if index > played else ""
+        self.get_logger().info(f"published {played} episode(s){cut}, {self.sim_publishers.published} messages")
 
 
 def main(args: list[str] | None = None) -> None:
