@@ -28,6 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 for pkg in ("ad_sim", "ad_estimator"):
     sys.path.insert(0, str(ROOT / "ros_ws" / "src" / pkg))
+sys.path.insert(0, str(ROOT / "benchmarks"))  # common, also when a test imports this file by path
 
 from ad_estimator.cli import HelpFormatter  # noqa: E402
 from ad_estimator.evaluate import predict_episode, to_metrics  # noqa: E402
@@ -38,6 +39,7 @@ from ad_sim.episode import simulate_batch  # noqa: E402
 from ad_sim.messages import instance_message  # noqa: E402
 from ad_sim.instances import drawn_per_family  # noqa: E402
 from ad_sim.materials import FRAME_INTERVAL  # noqa: E402
+from common import add_unseen_draw_options  # noqa: E402
 
 
 CROP = 64  # rows cut from the top and from the bottom of the 512x512 render for the 4:3 camera
@@ -55,13 +57,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter,
                                 epilog="About 20 s on the CPU with --instances 4; the figures in docs/estimator.md "
                                        "are --instances 20 (about 2 minutes).")
-    p.add_argument("--instances", type=int, default=4, help="unseen instances per family")
-    p.add_argument("--size", default="paper", choices=("tiny", "small", "paper"),
-                   help="benchmark the instances are drawn from")
+    add_unseen_draw_options(p)
     p.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="exported student (.onnx)")
     p.add_argument("--device", default="cpu", help="warp device for the simulation: cpu or cuda")
-    p.add_argument("--seed", type=int, default=0, help="which instances are drawn")
-    p.add_argument("--json", type=Path, help="also write the figures here")
     args = p.parse_args(argv)
     if args.instances < 1:
         p.error("--instances must be at least 1")

@@ -1,5 +1,9 @@
-"""Shared by the benchmark scripts: synthetic input clips and the summary of timed samples."""
+"""Shared by the benchmark scripts: synthetic input clips, the summary of timed samples, and the
+options that pick the unseen instances a benchmark simulates."""
 from __future__ import annotations
+
+import argparse
+from pathlib import Path
 
 import numpy as np
 
@@ -27,3 +31,12 @@ def percentiles(seconds) -> dict:
         return {"n": 0}
     return {"n": int(len(a)), "p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)),
             "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "max_ms": float(a.max())}
+
+
+def add_unseen_draw_options(parser: argparse.ArgumentParser) -> None:
+    """--instances, --size, --seed (the draw of ad_sim.instances.drawn_per_family) and --json."""
+    parser.add_argument("--instances", type=int, default=4, help="unseen instances per family")
+    parser.add_argument("--size", default="paper", choices=("tiny", "small", "paper"),
+                        help="benchmark the instances are drawn from")
+    parser.add_argument("--seed", type=int, default=0, help="which instances are drawn")
+    parser.add_argument("--json", type=Path, help="also write the figures here")

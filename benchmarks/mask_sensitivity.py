@@ -24,6 +24,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 for pkg in ("ad_sim", "ad_estimator"):
     sys.path.insert(0, str(ROOT / "ros_ws" / "src" / pkg))
+sys.path.insert(0, str(ROOT / "benchmarks"))  # common, also when a test imports this file by path
 
 from ad_estimator.cli import HelpFormatter  # noqa: E402
 from ad_estimator.metrics import ERROR_KIND  # noqa: E402
@@ -31,6 +32,7 @@ from ad_estimator.model import BUNDLED_MODEL  # noqa: E402
 from ad_sim.instances import drawn_per_family  # noqa: E402
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, SAMPLED_PARAMETERS  # noqa: E402
 from ad_sim.resimulate import mask_psnr, resimulate  # noqa: E402
+from common import add_unseen_draw_options  # noqa: E402
 
 
 def model_errors(metrics_path: Path) -> tuple[str, dict[str, dict[str, float]]]:
@@ -68,15 +70,11 @@ def moved(family: str, parameters: dict[str, float], name: str, error: float, si
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=HelpFormatter)
-    p.add_argument("--instances", type=int, default=4, help="unseen instances per family")
+    add_unseen_draw_options(p)
     p.add_argument("--families", nargs="+", choices=FAMILIES, default=list(FAMILIES), help="families to measure")
-    p.add_argument("--size", default="paper", choices=("tiny", "small", "paper"),
-                   help="benchmark the instances are drawn from")
     p.add_argument("--metrics", type=Path, default=BUNDLED_MODEL.with_suffix(".metrics.json"),
                    help="metrics JSON whose unseen errors set the steps")
     p.add_argument("--device", default="cpu", help="warp device: cpu or cuda")
-    p.add_argument("--seed", type=int, default=0, help="which instances are drawn")
-    p.add_argument("--json", type=Path, help="also write the figures here")
     args = p.parse_args(argv)
     if args.instances < 1:
         p.error("--instances must be at least 1")

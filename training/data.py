@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ad_estimator.evaluate import find_bags as bags_under
 from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask
 from ad_sim.materials import (
     FAMILIES,
@@ -56,6 +55,8 @@ _HASH_BLOCK = 1 << 20
 
 def find_bags(root: str | Path) -> list[Path]:
     """Bags under root (ad_estimator.evaluate.find_bags); FileNotFoundError if there are none."""
+    from ad_estimator.evaluate import find_bags as bags_under  # here: it pulls in metrics and the runtime
+
     root = Path(root)
     try:
         return bags_under([root])

@@ -224,7 +224,7 @@ class SimNode(Node):
             # The same validation as an instance-file entry (instances owns it).
             found = [library.instance_from_entry(entry, 0, "node parameters")]
         else:
-            found = library.benchmark(self.param("size"), self.param("split"), int(self.param("seed")))
+            found = library.benchmark(self.param("size"), self.param("split"), self.param("seed"))
         if not found:
             raise ValueError("no instances to play")
         return found
@@ -235,8 +235,8 @@ class SimNode(Node):
         """Worker thread: simulate batches and queue their episodes (None after the last one)."""
         from .episode import simulate_batch
 
-        batch = int(self.param("batch"))
-        views = int(self.param("views")) or None
+        batch = self.param("batch")
+        views = self.param("views") or None
         try:
             while not self.stop.is_set():
                 for start in range(0, len(self.instances), batch):
@@ -262,7 +262,7 @@ class SimNode(Node):
     # -- playback
 
     def _wait_for_subscribers(self) -> None:
-        wanted = int(self.param("wait_for_subscribers"))
+        wanted = self.param("wait_for_subscribers")
         if wanted <= 0:
             return
         self.get_logger().info(f"waiting for {wanted} subscription(s) on each of {len(self.sim_publishers.by_topic)} topics")
