@@ -211,9 +211,18 @@ SECTION_11 = shipped_and_variants("long_teacher", {
     f"experiments/long_teacher/teacher30_stop{stop}_unseen.json" for stop, best in ((1, 10), (2, 15), (3, 29))}
 
 
+# section 13
+SECTION_13 = shipped_and_variants("uniformer128", {"uni128": "UniFormer, 20 epochs, batch 4 x 32"}) | {
+    f"{split}, `t30_s0` (streaming, the same teacher, section 11)": f"experiments/long_teacher/t30_s0_{split}.json"
+    for split in ("seen", "unseen")} | {
+    "unseen, `uni20` (6 epochs, section 12; CPU-regenerated split)": "experiments/uniformer20/uni20_unseen.json",
+    "unseen, `uni128`, scored here on the CPU-regenerated split": "experiments/uniformer128/uni128_unseen_cpu.json"}
+
+
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
                                                    ("## 7. ", SECTION_7), ("## 8. ", SECTION_8), ("## 9. ", SECTION_9),
-                                                   ("## 10. ", SECTION_10), ("## 11. ", SECTION_11)])
+                                                   ("## 10. ", SECTION_10), ("## 11. ", SECTION_11),
+                                                   ("## 13. ", SECTION_13)])
 def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
     for label, file in rows_to_files.items():
@@ -221,33 +230,63 @@ def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
         assert rows[label] == measured(RESULTS / file), f"experiments {heading!r} row {label!r} differs from {file}"
 
 
+CAMERAS = ("object 1.33x larger", "object 0.8x smaller", "mask grown by 2 px of 512", "mask shrunk by 2 px of 512",
+           "every 4th frame lost", "10% of frames lost at random")
+
+
+def check_camera_rows(rows: dict[str, list[str]], runs: dict[str, Path]) -> None:
+    """A section's camera-benchmark rows ("<camera>, <run>") are the saved runs, and its sensitivity table
+    ("<camera>": one column per run) is each camera against the run's own simulator-mask RegL1."""
+    results = {name: json.loads(path.read_text())["results"] for name, path in runs.items()}
+    for name, result in results.items():
+        for camera in ("128x128 (simulator)", *CAMERAS):
+            expected = cells(format_table({"25": result[camera]}).splitlines()[2])[1:]
+            assert rows[f"{camera}, {name}"] == expected, (camera, name)
+    for camera in CAMERAS:
+        assert rows[camera] == [f"{r[camera]['regl1'] - r['128x128 (simulator)']['regl1']:+.3f}"
+                                for r in results.values()], camera
+
+
+def section_rows(number: int) -> dict[str, list[str]]:
+    """Every table row of an experiments section by its first cell, also tables indented in a list item."""
+    section = re.split(r"\n## ", (RESULTS / "experiments" / "README.md").read_text().split(f"## {number}. ", 1)[1])[0]
+    return {cells(line.strip())[0]: cells(line.strip())[1:] for line in section.splitlines()
+            if line.strip().startswith("| ")}
+
+
+def epoch_rows(history: str) -> list[dict]:
+    return json.loads((RESULTS / "experiments" / history).read_text())
+
+
 def test_experiments_section_12_tables_are_the_saved_runs():
     """Section 12: the camera-benchmark rows are the shipped model's and uni20's saved runs, and
     the epoch table is the two histories."""
-    section = (RESULTS / "experiments" / "README.md").read_text().split("## 12. ", 1)[1]
-    rows = {cells(line.strip())[0]: cells(line.strip())[1:] for line in section.splitlines()
-            if line.strip().startswith("| ")}  # also the table indented in a list item
-    runs = {"shipped `h3reg2`": ROOT / "docs" / "results" / "camera_resolution_paper_unseen_20.json",
-            "`uni20`": RESULTS / "experiments" / "uniformer20" / "camera_uni20_paper_unseen_20.json"}
-    cameras = ("object 1.33x larger", "object 0.8x smaller", "mask grown by 2 px of 512", "mask shrunk by 2 px of 512",
-               "every 4th frame lost", "10% of frames lost at random")
-    results = {name: json.loads(path.read_text())["results"] for name, path in runs.items()}
-    for name, result in results.items():
-        for camera in ("128x128 (simulator)", *cameras):
-            expected = cells(format_table({"25": result[camera]}).splitlines()[2])[1:]
-            assert rows[f"{camera}, {name}"] == expected, (camera, name)
-    for camera in cameras:  # the sensitivity table: each camera against the model's own simulator-mask RegL1
-        assert rows[camera] == [f"{r[camera]['regl1'] - r['128x128 (simulator)']['regl1']:+.3f}"
-                                for r in results.values()], camera
+    rows = section_rows(12)
+    check_camera_rows(rows, {"shipped `h3reg2`": ROOT / "docs" / "results" / "camera_resolution_paper_unseen_20.json",
+                             "`uni20`": RESULTS / "experiments" / "uniformer20" / "camera_uni20_paper_unseen_20.json"})
     for label, file in (("unseen, shipped `h3reg2` (CPU-regenerated split)", "shipped_unseen_cpu.json"),
                         ("unseen, `uni20` (CPU-regenerated split)", "uni20_unseen.json")):
         assert rows[label] == measured(RESULTS / "experiments" / "uniformer20" / file), label
-    uni, streaming = (json.loads((RESULTS / "experiments" / f).read_text())
-                      for f in ("uniformer20/uni20.history.json", "long_teacher/t30_s0.history.json"))
+    uni, streaming = epoch_rows("uniformer20/uni20.history.json"), epoch_rows("long_teacher/t30_s0.history.json")
     assert len(uni) == 6
     for u, t in zip(uni, streaming):
         assert rows[str(u["epoch"])] == [f"{u['val_regl1']:.3f}", f"{u['val_acc']:.3f}",
                                          f"{t['val_regl1']:.3f}", f"{t['val_acc']:.3f}"]
+
+
+def test_experiments_section_13_tables_are_the_saved_runs():
+    """Section 13: the epoch table is uni128's and t30_s0's histories, all 20 epochs, and the
+    camera-benchmark rows are the saved runs of the shipped model, uni20 and uni128."""
+    rows = section_rows(13)
+    uni, streaming = epoch_rows("uniformer128/uni128.history.json"), epoch_rows("long_teacher/t30_s0.history.json")
+    assert len(uni) == len(streaming) == 20
+    for u, t in zip(uni, streaming):
+        assert rows[str(u["epoch"])] == [f"{u[k]:.3f}" for k in ("train_regl1", "val_regl1", "val_acc", "val_ce")] + [
+            f"{t[k]:.3f}" for k in ("train_regl1", "val_regl1", "val_acc")], u["epoch"]
+    check_camera_rows(rows, {
+        "shipped `h3reg2`": ROOT / "docs" / "results" / "camera_resolution_paper_unseen_20.json",
+        "`uni20`": RESULTS / "experiments" / "uniformer20" / "camera_uni20_paper_unseen_20.json",
+        "`uni128`": RESULTS / "experiments" / "uniformer128" / "camera_uni128_paper_unseen_20.json"})
 
 
 def test_readme_calibration_table_is_the_runtime_checks():
