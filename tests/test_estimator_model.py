@@ -213,7 +213,16 @@ def test_cuda_provider_loads_or_says_what_is_missing(tmp_path):
 def test_corrupt_model_names_the_file(tmp_path):
     path = tmp_path / "corrupt.onnx"
     path.write_bytes(b"\x08\x07garbage" * 100)
-    with pytest.raises(ModelError, match="corrupt.onnx"):
+    with pytest.raises(ModelError, match="corrupt.onnx") as error:
+        EstimatorModel.load(path)
+    assert "export it first" not in str(error.value)  # that hint is for .pt files only
+
+
+def test_a_training_checkpoint_given_as_the_model_is_told_to_be_exported(tmp_path):
+    path = tmp_path / "best.pt"
+    path.write_bytes(b"PK\x03\x04" + b"\x00" * 64)  # a torch checkpoint is a zip archive
+    with pytest.raises(ModelError, match=r"best.pt looks like a training checkpoint: export it first \(python -m "
+                                         r"training export --checkpoint .*best.pt --out .*best.onnx\)"):
         EstimatorModel.load(path)
 
 

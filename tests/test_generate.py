@@ -44,15 +44,33 @@ def test_help_list_shapes_and_argument_errors(capsys):
     assert len(records) == 60 and {r["kind"] for r in records} == {"synthetic", "everyday"}
     assert {r["split"] for r in records} == {"train", "unseen"} and all(set(r) == {"name", "kind", "split", "source"} for r in records)
     assert parse_shard("1/4") == (1, 4)
-    for bad in (["--shard", "4/4"], ["--shard", "x"], ["--instances", "/nonexistent.yaml"]):
+    for bad in (["--shard", "4/4"], ["--shard", "x"], ["--instances", "/nonexistent.yaml"], ["--limit", "0"],
+                ["--limit", "-1"]):  # a negative --limit once dropped the last instance, silently
         with pytest.raises(SystemExit) as exit_info:
             main(bad)
         assert exit_info.value.code == 2
-    assert "/nonexistent.yaml" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "/nonexistent.yaml" in err and "--limit must be >= 1" in err
     with pytest.raises(SystemExit) as exit_info:
         main(["--device", "cuda:99", "--out", "/nonexistent/out"])  # refused before anything is written
     assert exit_info.value.code == 2
     assert "Warp device 'cuda:99' is not available" in capsys.readouterr().err
+
+
+def test_ctrl_c_says_what_to_do_without_a_traceback(tmp_path):
+    interrupted = generate("--size", "tiny", "--split", "unseen", "--limit", "2", "--batch", "1",
+                           "--out", str(tmp_path))
+    deadline = time.monotonic() + 300
+    while not (tmp_path / "unseen-0of1" / "metadata.yaml").exists():  # the shard is under way
+        assert interrupted.poll() is None and time.monotonic() < deadline, interrupted.stdout.read()
+        time.sleep(0.02)
+    interrupted.send_signal(signal.SIGINT)
+    output = interrupted.communicate(timeout=60)[0]
+    assert interrupted.returncode == 130, output
+    assert "Traceback" not in output
+    assert output.strip().splitlines()[-1] == (f"interrupted: {tmp_path / 'unseen-0of1'} is unfinished; run the same "
+                                               "command again to redo it (finished shards are kept)")
+    assert not (tmp_path / "unseen-0of1" / DONE_MARKER).exists()
 
 
 @pytest.mark.ros

@@ -24,6 +24,36 @@ def test_help(command, capsys):
     assert "--seed" in capsys.readouterr().out or command in ("cache", "evaluate", "evaluate-teacher")
 
 
+def _not_json(constant: str):
+    raise AssertionError(f"{constant} is not JSON (jq, browsers and strict parsers refuse it)")
+
+
+@pytest.mark.parametrize("argv", [["teacher", "--device", "gpu"], ["student", "--epochs", "0"],
+                                  ["teacher", "--threads", "-3"], ["student", "--val-fraction", "1.5"],
+                                  ["teacher", "--batch-size", "0"], ["pipeline", "--device", "gpu"]])
+def test_bad_training_options_are_refused_before_any_work(argv, capsys):
+    """Each once got as far as torch (a traceback), trained nothing with exit 0, or was accepted."""
+    with pytest.raises(SystemExit) as exit_info:
+        main([*argv, "--bags", "b", "--out", "o"] if argv[0] != "pipeline" else argv)
+    assert exit_info.value.code == 2
+    assert f"argument {argv[1]}: expected" in capsys.readouterr().err
+
+
+def test_an_out_that_is_a_folder_or_a_file_is_one_line(tmp_path, capsys):
+    """An --out that cannot be what the command writes: one line naming it, exit 1, nothing written."""
+    (tmp_path / "models").mkdir()
+    assert main(["export", "--checkpoint", str(tmp_path / "best.pt"), "--out", str(tmp_path / "models")]) == 1
+    assert capsys.readouterr().err == (f"python -m training export: --out {tmp_path / 'models'} is a folder; give the "
+                                       f"model's file name, e.g. {tmp_path / 'models' / 'student.onnx'}\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["models"]
+    bag = write_synthetic_bag(tmp_path / "bags" / "train", 4, views=1, seed=3)
+    (tmp_path / "afile").write_text("")
+    assert main(["teacher", "--bags", str(bag), "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "afile"),
+                 "--size", "tiny", "--epochs", "1", "--device", "cpu", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("python -m training teacher: [Errno 17] File exists") and "afile" in err[-1]
+
+
 def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
     data = tmp_path / "bags"
     for i, split in enumerate(("train", "seen", "unseen")):
@@ -34,7 +64,7 @@ def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
             str(tmp_path / "cache"), "--teacher-epochs", "1", "--student-epochs", "1", "--ablations", "full",
             "--install", str(tmp_path / "installed"), "--device", "cpu", "--no-progress"]
     assert main(args) == 0
-    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text(), parse_constant=_not_json)
     assert set(summary["students"]) == {"full"}
     for name in ("default.onnx", "default.frame.onnx", "default.metrics.json"):
         assert (tmp_path / "installed" / name).is_file(), name

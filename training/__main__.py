@@ -55,9 +55,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         commands[args.command][1](args)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, OSError) as exc:
         # What a user can fix (bad paths, flags, models, bags; ModelError and BagError are
-        # ValueErrors): one line. AD_DEBUG=1 keeps the traceback for developers.
+        # ValueErrors; an --out that is a file or a folder): one line. AD_DEBUG=1 keeps the
+        # traceback for developers.
         if os.environ.get("AD_DEBUG"):
             raise
         print(f"python -m training {args.command}: {exc}", file=sys.stderr)

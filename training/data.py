@@ -254,6 +254,17 @@ class Dataset:
     def __len__(self) -> int:
         return len(self.labels)
 
+    def test_split_warning(self, bags) -> str | None:
+        """A warning when these training instances include benchmark test instances (a --bags that
+        points at the folder above the splits), which would score the model on what it trained on."""
+        held_out = {split: self.meta["split"].count(split) for split in ("seen", "unseen")}
+        if not any(held_out.values()):
+            return None
+        which = ", ".join(f"{n} {split}" for split, n in held_out.items() if n)
+        return (f"warning: {which} of the {len(self)} training instances under {bags} are from the benchmark's test "
+                "splits, so scores on them would not measure generalisation; point --bags at the train split "
+                "(for example bags/paper/train)")
+
     @property
     def num_videos(self) -> int:
         return len(self.video_instance)

@@ -126,6 +126,8 @@ def save_checkpoint(path: Path, state: dict) -> None:
 def load_checkpoint(path: str | Path, stage: str | None = None) -> dict:
     """A checkpoint written by `fit`, on the CPU, with a clear error for a truncated or foreign file
     and, with `stage` ("teacher" or "student"), for a checkpoint of the other stage."""
+    if Path(path).is_dir():
+        raise ValueError(f"{path} is a folder; pass a checkpoint in it, e.g. {Path(path) / BEST}")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
@@ -182,15 +184,32 @@ class FitConfig:
 SELECT_METRICS = ("score", "regl1")
 
 
+def check_resumable(last: Path, state: dict, recipe: dict) -> None:
+    """Refuses to resume LAST under options other than those it was trained with: another seed or
+    validation fraction would move the validation split, another batch size or epoch count the
+    learning-rate schedule, another loss or model make a different run under the same name.
+    `recipe` maps command-line flags to values; checkpoints from before recipes were saved
+    recorded only --select."""
+    recorded = state.get("recipe") or {"--select": state.get("select", "score")}
+    differing = [flag for flag in recorded if flag in recipe and recorded[flag] != recipe[flag]]
+    if differing:
+        was = " ".join(f"{flag} {recorded[flag]}" for flag in differing)
+        now = " ".join(f"{flag} {recipe[flag]}" for flag in differing)
+        raise ValueError(f"{last} was trained with {was}; this run asks for {now}. Resume it with the same options, "
+                         f"or train into a new --out (or delete {last} to start this run over)")
+
+
 def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: Path, cfg: FitConfig, rt: Runtime,
-        meta: dict, desc: str = "train") -> dict:
+        meta: dict, desc: str = "train", recipe: dict | None = None) -> dict:
     """Trains `model` (already on rt.device) and returns the history.
 
     loss_fn(model, batch, train: bool) -> (loss tensor, {name: float tensor}); the batch is a dict
     of tensors on rt.device. Every epoch: validate, log, save LAST (model, optimizer, epoch,
-    step, RNG, history, meta) and BEST by the validation `cfg.select` metric (lower is better).
-    A run finds LAST in out_dir and resumes from it.
+    step, RNG, history, meta, recipe) and BEST by the validation `cfg.select` metric (lower is
+    better). A run finds LAST in out_dir and resumes from it, if `recipe` (command-line flag ->
+    value) matches the one LAST was trained with.
     """
+    recipe = {**(recipe or {}), "--select": cfg.select}
     if cfg.select not in SELECT_METRICS:
         raise ValueError(f"select must be one of {SELECT_METRICS}, got {cfg.select!r}")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -219,17 +238,24 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
     if last.exists():
         # Loaded on the CPU: load_state_dict moves weights and optimizer moments to the parameters'
         # device, and AdamW's step counters must stay on the CPU (on a GPU each step would sync).
-        state = load_checkpoint(last)
-        # BEST so far was picked by the run's metric: another one would compare unlike numbers.
-        if state.get("select", "score") != cfg.select:
-            raise ValueError(f"{last} was trained with --select {state.get('select', 'score')}; resume it with the "
-                             f"same, or start a fresh run folder for --select {cfg.select}")
-        raw.load_state_dict(state["model"])
+        try:
+            state = load_checkpoint(last, "student" if meta.get("config", {}).get("kind") else "teacher")
+        except ValueError as e:
+            raise ValueError(f"{e} (or delete {last} to start this run over)") from None
+        check_resumable(last, state, recipe)  # BEST so far was also picked by the run's --select metric
+        try:
+            raw.load_state_dict(state["model"])
+        except RuntimeError:  # a checkpoint from before recipes were saved, of another model shape
+            raise ValueError(f"{last} holds a model of another shape than this run's (--size, --kind, "
+                             "--previous-frames, --encoder-channels or --set differ); resume it with the options it "
+                             f"was trained with, or train into a new --out") from None
         optimizer.load_state_dict(state["optimizer"])
         epoch, step, history, best = state["epoch"], state["step"], state["history"], state["best"]
         set_rng_state(state["rng"])
         if rt.main:
-            tqdm.write(f"{desc}: resumed from {last} at epoch {epoch}")
+            done = f": the run is complete ({epoch} of {cfg.epochs} epochs), nothing to train" \
+                if epoch >= cfg.epochs else ""
+            tqdm.write(f"{desc}: resumed from {last} at epoch {epoch}{done}")
 
     stop_at = min(cfg.epochs, epoch + cfg.stop_after) if cfg.stop_after > 0 else cfg.epochs
     while epoch < stop_at:
@@ -269,7 +295,7 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
                 save_checkpoint(out_dir / BEST, {"model": raw.state_dict(), "epoch": epoch, "meta": meta})
             save_checkpoint(last, {"model": raw.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch,
                                    "step": step, "rng": rng_state(), "history": history, "best": best,
-                                   "select": cfg.select, "meta": meta})
+                                   "select": cfg.select, "recipe": recipe, "meta": meta})
             (out_dir / "history.json").write_text(json.dumps(history, indent=1))
             tqdm.write(f"{desc} " + " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                              for k, v in record.items()))

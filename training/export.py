@@ -95,10 +95,12 @@ def frame_encoder_path(onnx_path: Path) -> Path:
 
 def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None = None) -> list[Path]:
     """Writes the ONNX file(s) for a student checkpoint; `out` is <name>.onnx. Returns the paths."""
+    out = Path(out)
+    if out.is_dir():  # before anything is written: a streaming student's frame encoder would land beside it
+        raise ValueError(f"--out {out} is a folder; give the model's file name, e.g. {out / 'student.onnx'}")
     model, meta = load_student(checkpoint)
     model = model.float().eval()
     config = model.config
-    out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     digest = hashlib.sha256(b"".join(p.detach().numpy().tobytes() for p in model.state_dict().values())).hexdigest()
     model_id = model_id or f"{out.stem}-{config.kind}-{meta.get('ablation', 'full')}-{digest[:8]}"

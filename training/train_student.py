@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import dataclasses
 from pathlib import Path
 
@@ -17,7 +18,8 @@ from training.engine import BEST, fit, init_runtime, load_checkpoint, main_first
 from training.models.common import align_loss, task_loss
 from training.models.student import FRAME_COUNT, StudentConfig, build_student, override_config, student_preset
 from training.models.teacher import TEACHER_PRESETS
-from training.train_teacher import add_common_args, fit_config, load_teacher, teacher_targets
+from training.train_teacher import (RECIPE_OPTIONS, add_common_args, count, fit_config, fraction, load_teacher, recipe,
+                                    teacher_targets)
 
 ABLATIONS = ("none", "align_only", "full")
 # SPEC 9: 0.1 align + 1.0 CE + 0.2 RegL1 (+ a small weight on the uncertainty head's NLL).
@@ -162,16 +164,16 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--encoder-channels", type=_channels, metavar="C1,C2,...",
                    help="streaming: channels of the frame encoder's stride-2 stages (default: the size preset's; "
                         "wider costs CPU time per frame, see benchmarks/latency.py)")
-    p.add_argument("--previous-frames", type=_count, default=0, metavar="N",
+    p.add_argument("--previous-frames", type=count, default=0, metavar="N",
                    help="streaming: the frame encoder also sees the N earlier observed frames (early fusion of "
                         "time; the estimator passes them on); the bundled model: 3")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a field of the size preset's model config, repeatable: e.g. --set dropout=0 "
                         "--set pool=8 (the fields are StudentConfig's in training/models/student.py; saved in the "
                         "checkpoint, so export and the estimator follow)")
-    p.add_argument("--shift", type=_count, default=0, metavar="PX",
+    p.add_argument("--shift", type=count, default=0, metavar="PX",
                    help="augmentation: shift each training clip by up to PX pixels in x and y (default 0: off)")
-    p.add_argument("--zoom", type=_fraction, default=0.0, metavar="FRAC",
+    p.add_argument("--zoom", type=fraction, default=0.0, metavar="FRAC",
                    help="augmentation: zoom each training clip by a factor in [1 - FRAC, 1 + FRAC] about the image "
                         "centre (default 0: off; the rendered cameras' distances span about +-14%%)")
     p.add_argument("--full-clips", action="store_true",
@@ -179,20 +181,9 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     return p
 
 
-def _count(text: str) -> int:
-    if not text.isdigit():
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
-    return int(text)
-
-
-def _fraction(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not 0.0 <= value < 1.0:
-        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1), got {text!r}")
-    return value
+# Beyond the teacher's RECIPE_OPTIONS, what a student's resumed run must keep.
+STUDENT_RECIPE_OPTIONS = ("kind", "ablation", "alpha", "align_weight", "regl1_weight", "previous_frames",
+                          "encoder_channels", "set", "shift", "zoom", "full_clips")
 
 
 def _channels(text: str) -> tuple[int, ...]:
@@ -231,6 +222,8 @@ def run(args) -> Path:
         raise SystemExit(str(e)) from None
     ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
+    if rt.main and (warning := ds.test_split_warning(args.bags)):
+        tqdm.write(warning, file=sys.stderr)
     targets = teacher_targets(teacher, ds, rt.device) if teacher and args.ablation != "none" else None
     frames = main_first(rt, lambda: data.resized_videos(ds, tuple(config.input_size),
                                                           rt.main and not args.no_progress))
@@ -253,5 +246,5 @@ def run(args) -> Path:
             "loss_weights": {"align": args.align_weight, "ce": CE_WEIGHT, "regl1": args.regl1_weight, "nll": NLL_WEIGHT}}
     out = Path(args.out)
     fit(model, train_set, val_set, student_loss(args.ablation, args.alpha, args.align_weight, args.regl1_weight), out, fit_config(args), rt, meta,
-        desc=f"student[{config.kind},{args.ablation}]")
+        desc=f"student[{config.kind},{args.ablation}]", recipe=recipe(args, RECIPE_OPTIONS + STUDENT_RECIPE_OPTIONS))
     return out / BEST

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -148,30 +149,72 @@ def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: 
     return Predictions(ds.labels, ds.params_si, np.concatenate(probs), si, list(ds.episode_ids))
 
 
+def count(text: str) -> int:
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return int(text)
+
+
+def positive(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return int(text)
+
+
+def fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1), got {text!r}")
+    return value
+
+
+def device_name(text: str) -> str:
+    """auto, cpu, cuda or cuda:<index>: what init_runtime takes (checked here, before data loads)."""
+    if text in ("auto", "cpu", "cuda") or (text.startswith("cuda:") and text[5:].isdigit()):
+        return text
+    raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda or cuda:<index>, got {text!r}")
+
+
 def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr: float = 1e-4) -> None:
     p.add_argument("--bags", required=True, help="folder of training .mcap bags (searched recursively)")
     p.add_argument("--cache", default=".cache/training", help="array cache folder (keyed by bag content)")
     p.add_argument("--out", required=True, help="run folder: checkpoints, history; an existing one is resumed")
-    p.add_argument("--size", choices=["tiny", "small", "paper"], default="small", help="model size preset")
-    p.add_argument("--epochs", type=int, default=epochs, help=f"epochs (default {epochs}; paper values in SPEC 9)")
-    p.add_argument("--batch-size", type=int, default=batch_size, help="per-process batch size")
+    p.add_argument("--size", choices=["tiny", "small", "paper"], default="small",
+                   help="model size preset; it picks the model only: --epochs, --batch-size and --lr keep their own "
+                        "defaults (SPEC 9's paper recipe; `pipeline` sets per-size ones)")
+    p.add_argument("--epochs", type=positive, default=epochs, help=f"epochs (default {epochs}; paper values in SPEC 9)")
+    p.add_argument("--batch-size", type=positive, default=batch_size, help="per-process batch size")
     p.add_argument("--lr", type=float, default=lr, help="AdamW peak learning rate (cosine to --min-lr)")
     p.add_argument("--min-lr", type=float, default=1e-6,
-                   help="final learning rate of the cosine schedule (reached at the last step)")
+                   help="floor of the cosine schedule (approached over the last steps)")
     p.add_argument("--weight-decay", type=float, default=1e-4, help="AdamW weight decay")
-    p.add_argument("--val-fraction", type=float, default=0.1, help="instances held out for validation")
+    p.add_argument("--val-fraction", type=fraction, default=0.1, help="instances held out for validation")
     p.add_argument("--seed", type=int, default=0,
                    help="seeds initialisation, the validation split (--val-fraction), batch order, "
                         "augmentation and the students' random prefixes")
-    p.add_argument("--device", default="auto", help="auto | cpu | cuda (torchrun: one process per GPU)")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch default)")
+    p.add_argument("--device", type=device_name, default="auto", help="auto | cpu | cuda (torchrun: one process per GPU)")
+    p.add_argument("--threads", type=count, default=0, help="torch CPU threads (0: torch default)")
     p.add_argument("--amp", action="store_true", help="bfloat16 autocast (CUDA only)")
-    p.add_argument("--stop-after", type=int, default=0,
+    p.add_argument("--stop-after", type=count, default=0,
                    help="stop after this many epochs in this run (time-limited sessions); rerun to continue")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--select", choices=SELECT_METRICS, default="score",
                    help="validation metric that picks best.pt: score = CE + RegL1 (favours classification), "
                         "regl1 = RegL1 alone (favours the parameters planners use); keep it when resuming")
+
+
+# The options that make a training run what it is (engine.check_resumable): a resumed run must keep them.
+# Paths (--bags, --cache, --teacher) may move between machines, and --device, --threads, --amp,
+# --stop-after and progress only change how it runs.
+RECIPE_OPTIONS = ("size", "epochs", "batch_size", "lr", "min_lr", "weight_decay", "val_fraction", "seed")
+
+
+def recipe(args, names: tuple[str, ...] = RECIPE_OPTIONS) -> dict:
+    """{command-line flag: value} of `names` in args."""
+    return {"--" + name.replace("_", "-"): getattr(args, name) for name in names}
 
 
 def fit_config(args) -> FitConfig:
@@ -197,6 +240,8 @@ def run(args) -> Path:
     rt = init_runtime(args.device)
     ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
+    if rt.main and (warning := ds.test_split_warning(args.bags)):
+        tqdm.write(warning, file=sys.stderr)
     config = TEACHER_PRESETS[args.size]
     model = Teacher(config).to(rt.device)
     on_device = None
@@ -206,7 +251,7 @@ def run(args) -> Path:
     fit(model, TrajectorySet(ds, train_idx, True, args.seed, model, on_device),
         TrajectorySet(ds, val_idx, False, args.seed, model, on_device),
         teacher_loss, out, fit_config(args), rt, meta={"config": config.to_dict(), "size": args.size},
-        desc="teacher")
+        desc="teacher", recipe=recipe(args))
     return out / BEST
 
 
@@ -221,7 +266,7 @@ def build_eval_parser(p: argparse.ArgumentParser | None = None) -> argparse.Argu
     p.add_argument("--cache", default=".cache/training", help="array cache folder")
     p.add_argument("--out", required=True, help="report folder")
     p.add_argument("--title", help="report title (default: the checkpoint and the bags)")
-    p.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    p.add_argument("--device", type=device_name, default="auto", help="auto | cpu | cuda")
     p.add_argument("--amp", action="store_true", help="bfloat16 autocast (CUDA only)")
     p.add_argument("--batch-size", type=int, default=64, help="instances per forward pass")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")

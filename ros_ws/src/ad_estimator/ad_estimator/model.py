@@ -237,7 +237,9 @@ def _session(path: Path, threads: int, provider: str = "cpu") -> ort.InferenceSe
     try:
         return ort.InferenceSession(str(path), sess_options=options, providers=[PROVIDERS[provider]])
     except Exception as exc:  # onnxruntime raises several unrelated types for unreadable files
-        raise ModelError(f"cannot load ONNX model {path}: {exc}") from exc
+        hint = (f"; {path.name} looks like a training checkpoint: export it first (python -m training export "
+                f"--checkpoint {path} --out {path.with_suffix('.onnx')})") if path.suffix in (".pt", ".pth") else ""
+        raise ModelError(f"cannot load ONNX model {path}: {exc}{hint}") from exc
 
 
 def _require_io(session: ort.InferenceSession, path: Path, inputs: tuple[str, ...], outputs: tuple[str, ...]):

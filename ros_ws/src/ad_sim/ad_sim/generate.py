@@ -182,6 +182,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     name = args.name or name
     if args.limit is not None:
+        if args.limit < 1:
+            parser.error(f"--limit must be >= 1 (the number of instances to keep), got {args.limit}")
         instances = instances[: args.limit]
     if args.views is not None and args.views < 1:
         parser.error("--views must be >= 1")
@@ -208,6 +210,10 @@ def main(argv: list[str] | None = None) -> int:
         except (BagError, ShardMismatch) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
+        except KeyboardInterrupt:  # the shard has no DONE marker yet, so a re-run redoes it
+            print(f"interrupted: {folder} is unfinished; run the same command again to redo it (finished shards "
+                  "are kept)", file=sys.stderr)
+            return 130
         print(f"{folder}: {'written' if wrote else 'already done, skipped'}", file=sys.stderr)
     return 0
 
