@@ -1,5 +1,6 @@
-"""Shared by the benchmark scripts: synthetic input clips, the summary of timed samples, and the
-options that pick the unseen instances a benchmark simulates."""
+"""Shared by the benchmark scripts: synthetic input clips, the summary of timed samples, the options
+that pick the unseen instances a benchmark simulates, and argument checks that refuse a bad count,
+output path or Warp device before any work (a run can take hours)."""
 from __future__ import annotations
 
 import argparse
@@ -33,10 +34,44 @@ def percentiles(seconds) -> dict:
             "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "max_ms": float(a.max())}
 
 
+def positive(text: str) -> int:
+    """argparse type: a whole number >= 1."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return int(text)
+
+
+def json_out(text: str) -> Path:
+    """argparse type of --json: a file whose folder exists, checked before the run rather than after it."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder; give a file name, e.g. {path / 'figures.json'}")
+    if not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"the folder {path.parent} does not exist")
+    return path
+
+
+def quiet_warp() -> None:
+    """No Warp start-up banner or kernel-load lines: they would mix into the tables on stdout."""
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+
+
+def check_warp_device(parser: argparse.ArgumentParser, device: str) -> None:
+    """parser.error (one line, exit 2) for a Warp device this machine lacks, before any simulation."""
+    from ad_sim import mpm
+
+    try:
+        mpm.check_device(device)
+    except ValueError as exc:
+        parser.error(str(exc))
+
+
 def add_unseen_draw_options(parser: argparse.ArgumentParser) -> None:
     """--instances, --size, --seed (the draw of ad_sim.instances.drawn_per_family) and --json."""
-    parser.add_argument("--instances", type=int, default=4, help="unseen instances per family")
+    parser.add_argument("--instances", type=positive, default=4, help="unseen instances per family")
     parser.add_argument("--size", default="paper", choices=("tiny", "small", "paper"),
                         help="benchmark the instances are drawn from")
     parser.add_argument("--seed", type=int, default=0, help="which instances are drawn")
-    parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--json", type=json_out, help="also write the figures here")

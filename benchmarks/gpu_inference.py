@@ -29,7 +29,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator")]
 
-from common import falling_disc_clips, percentiles  # noqa: E402  (benchmarks/, the script's folder)
+from common import falling_disc_clips, json_out, percentiles, positive  # noqa: E402  (benchmarks/, the script's folder)
 from training.models.student import FRAME_COUNT, build_student, frame_encoder_input, student_preset  # noqa: E402
 from training.models.teacher import TEACHER_PRESETS  # noqa: E402
 
@@ -61,13 +61,16 @@ def outputs_to_host(out: dict) -> None:
         out[key].cpu()
 
 
-def measure(model: torch.nn.Module, weights: str, args, device: torch.device) -> dict:
+def measure(model: torch.nn.Module, weights: str, preset: str | None, args, device: torch.device) -> dict:
+    """The figures of one model; `preset` is its size preset (a checkpoint's own, or --size)."""
+    print(f"timing {model.config.kind} ({weights}) on {device}: {args.iterations} calls per figure after "
+          f"{args.warmup} warm-up calls", file=sys.stderr)  # on a CPU the defaults take a long time
     size = tuple(model.config.input_size)
     if size[0] != size[1]:
         raise ValueError(f"input size {size}: the synthetic clips are square")
     clips = falling_disc_clips(args.batch, size[0])
     valid = torch.ones(1, FRAME_COUNT, device=device)
-    result = {"weights": weights, "input_size": list(size),
+    result = {"weights": weights, "size": preset, "input_size": list(size),
               "parameters": sum(p.numel() for p in model.parameters())}
     with torch.inference_mode(), torch.autocast(device.type, torch.bfloat16, enabled=args.amp):
         result["per_instance"] = percentiles(timed(
@@ -94,16 +97,21 @@ def measure(model: torch.nn.Module, weights: str, args, device: torch.device) ->
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--kinds", nargs="+", choices=["streaming", "uniformer"], default=["streaming", "uniformer"])
-    parser.add_argument("--size", choices=["tiny", "small", "paper"], default="paper", help="model preset")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+                                     epilog="On a CPU, lower --iterations, --warmup and --batch: the defaults are "
+                                            "sized for a GPU (hours on a CPU).")
+    parser.add_argument("--kinds", nargs="+", choices=["streaming", "uniformer"], default=["streaming", "uniformer"],
+                        help="students to time")
+    parser.add_argument("--size", choices=["tiny", "small", "paper"], default="paper",
+                        help="model preset of the random-weight models")
     parser.add_argument("--checkpoint", type=Path, default=None, help="a student checkpoint to time instead of random weights")
-    parser.add_argument("--device", default="cuda", help="cuda (default) or cpu")
-    parser.add_argument("--iterations", type=int, default=500, help="timed calls per figure")
-    parser.add_argument("--warmup", type=int, default=50)
-    parser.add_argument("--batch", type=int, default=64, help="clips per batch for the throughput figure")
+    parser.add_argument("--device", choices=["cuda", "cpu"], default="cuda", help="torch device")
+    parser.add_argument("--iterations", type=positive, default=500, help="timed calls per figure")
+    parser.add_argument("--warmup", type=positive, default=50, help="untimed calls before each figure")
+    parser.add_argument("--batch", type=positive, default=64, help="clips per batch for the throughput figure")
     parser.add_argument("--amp", action="store_true", help="bfloat16 autocast")
-    parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    parser.add_argument("--json", type=json_out, default=None, help="also write the figures here")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -111,17 +119,22 @@ def main(argv=None) -> int:
     trained = {}
     if args.checkpoint:
         from training.train_student import load_student  # needs mcap (training data); random weights do not
-        model, meta = load_student(args.checkpoint, device)
-        trained[meta["kind"]] = model
+        try:
+            model, meta = load_student(args.checkpoint, device)
+        except (OSError, ValueError) as exc:
+            parser.error(f"--checkpoint: {exc}")
+        trained[meta["kind"]] = model, meta.get("size")
     torch.backends.cudnn.benchmark = True
     result = {}
     for kind in args.kinds:
         if kind in trained:
-            result[kind] = measure(trained[kind], str(args.checkpoint), args, device)
+            model, preset = trained[kind]
+            result[kind] = measure(model, str(args.checkpoint), preset, args, device)
         else:
             model = build_student(student_preset(kind, args.size, TEACHER_PRESETS[args.size].z_dim))
-            result[kind] = measure(model.to(device).eval(), "random", args, device)
-    result["setup"] = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
+            result[kind] = measure(model.to(device).eval(), "random", args.size, args, device)
+    cpu = platform.processor() or platform.machine()  # processor() is empty on Linux
+    result["setup"] = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else cpu,
                        "torch": torch.__version__, "size": args.size, "amp": args.amp, "iterations": args.iterations}
     print(json.dumps(result, indent=2))
     if args.json:

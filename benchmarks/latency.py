@@ -34,10 +34,10 @@ sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_w
 
 from ad_estimator.cli import HelpFormatter  # noqa: E402
 from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask  # noqa: E402
-from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel  # noqa: E402
+from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel, ModelError  # noqa: E402
 from ad_estimator.parameters import PARAMETERS as NODE  # noqa: E402
 from ad_estimator.window import FrameWindow  # noqa: E402
-from common import falling_disc_clips, percentiles  # noqa: E402  (benchmarks/, the script's folder)
+from common import falling_disc_clips, json_out, percentiles, positive  # noqa: E402  (benchmarks/, the script's folder)
 
 TOPIC = "/latency_benchmark/mask"
 FRAME_NS = 25_000_000
@@ -173,25 +173,25 @@ def main(argv=None) -> int:
                                      epilog="Target: p50 < 3.83 ms on a 2-core CPU with the streaming student.")
     parser.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: bundled)")
     parser.add_argument("--bag", type=Path, default=None, help="take masks from this bag (default: synthetic)")
-    parser.add_argument("--episodes", type=int, default=20, help="episodes of 25 frames")
+    parser.add_argument("--episodes", type=positive, default=20, help="episodes of 25 frames")
     parser.add_argument("--policy", choices=["anytime", "episode"], default="anytime",
                         help="output policy (the node's output_policy; default: anytime, which with the defaults "
                              "--every-n 1 --min-frames 1 times an estimate at every frame from frame 1, unlike the "
                              f"node's defaults: output_policy {NODE['output_policy'][0]}, "
                              f"every_n {NODE['every_n'][0]}, min_frames {NODE['min_frames'][0]}); "
                              "episode times the 25th frame only")
-    parser.add_argument("--every-n", type=int, default=1,
+    parser.add_argument("--every-n", type=positive, default=1,
                         help="anytime: an estimate every N more frames "
                              f"(default: 1, every frame; the node's: {NODE['every_n'][0]})")
-    parser.add_argument("--min-frames", type=int, default=1,
+    parser.add_argument("--min-frames", type=positive, default=1,
                         help="anytime: frames before the first estimate "
                              f"(default: 1, from frame 1; the node's: {NODE['min_frames'][0]})")
     parser.add_argument("--rate", type=float, default=1.0, help="publishing speed factor (ROS mode)")
-    parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
+    parser.add_argument("--threads", type=positive, default=1, help="onnxruntime intra-op threads")
     parser.add_argument("--provider", choices=sorted(PROVIDERS), default="cpu",
                         help="onnxruntime execution provider (cuda needs onnxruntime-gpu; ROS mode: cpu only)")
     parser.add_argument("--no-ros", action="store_true", help="time conversion + window + model only")
-    parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    parser.add_argument("--json", type=json_out, default=None, help="also write the figures here")
     parser.add_argument("--publish", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.publish:
@@ -199,10 +199,14 @@ def main(argv=None) -> int:
         return 0
     if args.provider != "cpu" and not args.no_ros:
         parser.error("--provider cuda is measured with --no-ros (the node's execution_provider parameter does the same)")
-    model = EstimatorModel.load(args.model, threads=args.threads, provider=args.provider)
+    try:
+        model = EstimatorModel.load(args.model, threads=args.threads, provider=args.provider)
+    except ModelError as exc:
+        parser.error(str(exc))
     result = run_no_ros(args, model) if args.no_ros else run_ros(args)
     result["setup"] = {"model": str(args.model), "model_id": model.model_id, "kind": model.info.kind,
                        "mode": "no-ros" if args.no_ros else "ros", "policy": args.policy, "every_n": args.every_n,
+                       "min_frames": args.min_frames,
                        "episodes": args.episodes, "threads": args.threads, "provider": args.provider, "cpu": platform.processor() or
                        platform.machine(), "cpu_count": os.cpu_count()}
     print(json.dumps(result, indent=2))

@@ -32,7 +32,7 @@ from ad_estimator.model import BUNDLED_MODEL  # noqa: E402
 from ad_sim.instances import drawn_per_family  # noqa: E402
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, SAMPLED_PARAMETERS  # noqa: E402
 from ad_sim.resimulate import mask_psnr, resimulate  # noqa: E402
-from common import add_unseen_draw_options  # noqa: E402
+from common import add_unseen_draw_options, check_warp_device, quiet_warp  # noqa: E402
 
 
 def model_errors(metrics_path: Path) -> tuple[str, dict[str, dict[str, float]]]:
@@ -76,8 +76,8 @@ def main(argv=None) -> int:
                    help="metrics JSON whose unseen errors set the steps")
     p.add_argument("--device", default="cpu", help="warp device: cpu or cuda")
     args = p.parse_args(argv)
-    if args.instances < 1:
-        p.error("--instances must be at least 1")
+    quiet_warp()
+    check_warp_device(p, args.device)
 
     model_id, errors = model_errors(args.metrics)
     chosen = drawn_per_family(args.size, "unseen", args.instances, args.seed, args.families)

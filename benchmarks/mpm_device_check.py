@@ -18,6 +18,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from common import check_warp_device, positive  # noqa: E402
 from sim_throughput import SHAPE_SIZE, make_scene  # noqa: E402
 
 from ad_sim import mpm  # noqa: E402
@@ -38,6 +39,10 @@ def run(device: str, output: Path, count: int, frames: int) -> None:
 
 def compare(a: Path, b: Path) -> None:
     A, B = np.load(a), np.load(b)
+    shapes = {name: [A[key].shape for key in A.files if key != "families"] for name, A in ((a, A), (b, B))}
+    if shapes[a] != shapes[b] or list(A["families"]) != list(B["families"]):
+        raise ValueError(f"{a} and {b} hold different runs (scenes, families or frames differ); compare files "
+                         "written with the same --scenes and --frames")
     for i, family in enumerate(A["families"]):
         dx = np.abs(A[f"x{i}"] - B[f"x{i}"]).max()
         dF = np.abs(A[f"F{i}"] - B[f"F{i}"]).max()
@@ -48,13 +53,17 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", help="Warp device to run on (default cpu)")
     parser.add_argument("--output", type=Path, help="npz file to write")
-    parser.add_argument("--scenes", type=int, default=6, help="number of scenes (default 6)")
-    parser.add_argument("--frames", type=int, default=25, help="frames (default 25)")
+    parser.add_argument("--scenes", type=positive, default=6, help="number of scenes (default 6)")
+    parser.add_argument("--frames", type=positive, default=25, help="frames (default 25)")
     parser.add_argument("--compare", nargs=2, type=Path, metavar=("A", "B"), help="compare two npz files")
     args = parser.parse_args(argv)
     if args.compare:
-        compare(*args.compare)
+        try:
+            compare(*args.compare)
+        except (OSError, ValueError) as exc:
+            parser.error(str(exc))
     elif args.output:
+        check_warp_device(parser, args.device)
         run(args.device, args.output, args.scenes, args.frames)
     else:
         parser.error("give --output to run, or --compare A B")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import random
+import shutil
 import signal
 import sys
 import tempfile
@@ -20,6 +21,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # common
 
 from ros_procs import recorder_counts, start, stop  # noqa: E402
 from sim_fixtures import fabricated_episode  # noqa: E402
@@ -27,12 +29,14 @@ from sim_fixtures import fabricated_episode  # noqa: E402
 from ad_sim import messages  # noqa: E402
 from ad_sim.generate import write_episodes  # noqa: E402
 from ad_sim.rosbag import BagReader, BagWriter  # noqa: E402
+from common import positive  # noqa: E402
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--episodes", type=int, default=20, help="episodes to publish (default %(default)s)")
-    parser.add_argument("--views", type=int, default=1, help="cameras per episode (default %(default)s)")
+    parser.add_argument("--episodes", type=positive, default=20, help="episodes to publish (default %(default)s)")
+    parser.add_argument("--views", type=positive, default=1, help="cameras per episode (default %(default)s)")
+    parser.add_argument("--keep", action="store_true", help="keep the bags and the recorder's log (path printed)")
     parser.add_argument("--slow-heartbeat", action="store_true", help="keep Fast DDS's 3 s heartbeat (what the node avoids)")
     args = parser.parse_args()
 
@@ -62,7 +66,8 @@ def main() -> None:
     converted = [(topic, to_ros_message(types[topic], data)) for topic, _, data in items]
     conversion = time.perf_counter() - start_time
 
-    domain = random.randrange(101, 200)
+    # The caller's ROS_DOMAIN_ID if set (shared machines give each user one), else a random quiet one.
+    domain = int(os.environ.get("ROS_DOMAIN_ID") or random.randrange(101, 200))
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     context = Context()
     rclpy.init(context=context, domain_id=domain)
@@ -94,6 +99,10 @@ def main() -> None:
         f"{megabytes / through_dds:6.1f} MB/s (compressed)"
     )
     print(f"recorder in {received}, out {written}, in bag {in_bag}, published {len(items)}")
+    if args.keep:
+        print(f"kept in {work}")
+    else:
+        shutil.rmtree(work)
 
 
 if __name__ == "__main__":

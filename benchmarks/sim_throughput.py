@@ -25,10 +25,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "ros_ws" / "src" / "ad_sim"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # common, also when a test imports this file by path
 
 import warp as wp  # noqa: E402
+from common import check_warp_device, json_out, positive, quiet_warp  # noqa: E402
 
-wp.config.log_level = wp.LOG_WARNING  # no start-up banner or kernel-load lines
+quiet_warp()
 
 from ad_sim import materials, mpm  # noqa: E402
 
@@ -159,26 +161,24 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", choices=sorted(SHAPE_SIZE), default="paper", help="instance mix (default paper)")
     parser.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:0 ... (default cpu)")
-    parser.add_argument("--batch", type=int, default=8, help="scenes per solver launch (default 8)")
-    parser.add_argument("--instances", type=int, default=None, help="instances to simulate (default: one batch)")
-    parser.add_argument("--frames", type=int, default=materials.FRAME_COUNT, help="frames per instance (default 25)")
+    parser.add_argument("--batch", type=positive, default=8, help="scenes per solver launch (default 8)")
+    parser.add_argument("--instances", type=positive, default=None, help="instances to simulate (default: one batch)")
+    parser.add_argument("--frames", type=int, default=materials.FRAME_COUNT,
+                        help="frames per instance in MPM mode (default 25; --episodes always simulates 25)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the mix (default 0)")
     parser.add_argument("--no-group", dest="group", action="store_false", help="batch in order, not by substeps")
     parser.add_argument("--episodes", action="store_true", help="time episode.simulate_batch (MPM + rendering)")
     parser.add_argument("--progress", action="store_true", help="tqdm progress bars")
     parser.add_argument("--profile", action="store_true", help="CUDA: time each kernel (wp.timing_begin)")
-    parser.add_argument("--block-dim", type=int, default=None, help="override mpm.BLOCK_DIM (CUDA tuning)")
-    parser.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
+    parser.add_argument("--block-dim", type=positive, default=None, help="override mpm.BLOCK_DIM (CUDA tuning)")
+    parser.add_argument("--json", type=json_out, default=None, help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
-    if args.batch < 1 or args.frames < 2:
-        parser.error("--batch must be >= 1 and --frames >= 2")
+    if args.frames < 2:
+        parser.error("--frames must be >= 2")
     args.instances = args.instances or args.batch
     if args.block_dim:
         mpm.BLOCK_DIM = args.block_dim
-    try:
-        mpm.check_device(args.device)
-    except ValueError as exc:
-        parser.error(str(exc))
+    check_warp_device(parser, args.device)
     figures = bench_episodes(args) if args.episodes else bench_scenes(args)
     for key, value in figures.items():
         print(f"{key:>22}: {value:.4g}" if isinstance(value, float) else f"{key:>22}: {value}")

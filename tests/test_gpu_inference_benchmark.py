@@ -35,7 +35,8 @@ def test_reports_per_frame_per_instance_and_throughput(tmp_path):
         assert figures[kind]["throughput"]["batch"] == 2 and figures[kind]["throughput"]["instances_per_s"] > 0
     assert figures["streaming"]["per_frame"]["p99_ms"] >= figures["streaming"]["per_frame"]["p50_ms"] > 0
     assert "per_frame" not in figures["uniformer"]  # a clip model has no per-frame step
-    assert figures["setup"]["size"] == "tiny"
+    assert figures["setup"]["size"] == figures["streaming"]["size"] == "tiny"
+    assert "timing streaming (random) on cpu: 3 calls per figure after 1 warm-up calls" in result.stderr
 
 
 @pytest.mark.parametrize("previous_frames", [0, 1, 3])
@@ -46,7 +47,7 @@ def test_times_a_trained_checkpoint_when_given(tmp_path, previous_frames):
     model = build_student(config)
     checkpoint = tmp_path / "student.pt"
     save_checkpoint(checkpoint, {"model": model.state_dict(), "epoch": 1,
-                                 "meta": {"config": config.to_dict(), "kind": "streaming"}})
+                                 "meta": {"config": config.to_dict(), "kind": "streaming", "size": "tiny"}})
     result = run("--device", "cpu", "--kinds", "streaming", "--checkpoint", str(checkpoint), "--iterations", "2",
                  "--warmup", "1", "--batch", "2")
     assert result.returncode == 0, result.stderr
@@ -54,6 +55,8 @@ def test_times_a_trained_checkpoint_when_given(tmp_path, previous_frames):
     assert figures["streaming"]["weights"] == str(checkpoint)
     assert figures["streaming"]["parameters"] == sum(p.numel() for p in model.parameters())
     assert figures["streaming"]["per_frame"]["p50_ms"] > 0
+    assert figures["streaming"]["size"] == "tiny"  # the checkpoint's preset, not --size's default
+    assert figures["setup"]["device"]  # platform.processor() alone is empty on Linux
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
