@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ad_estimator.cli import positive  # shared with training; the scripts import it from here
+
 FRAME_COUNT = 25
 
 
@@ -32,13 +34,6 @@ def percentiles(seconds) -> dict:
         return {"n": 0}
     return {"n": int(len(a)), "p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)),
             "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "max_ms": float(a.max())}
-
-
-def positive(text: str) -> int:
-    """argparse type: a whole number >= 1."""
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
-    return int(text)
 
 
 def json_out(text: str) -> Path:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "ros_ws" / "src" / "ad_sim"))
+sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "ros_ws" / "src" / pkg) for pkg in ("ad_sim", "ad_estimator")]
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common, also when a test imports this file by path
 
 import warp as wp  # noqa: E402

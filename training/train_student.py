@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import dataclasses
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,13 +13,13 @@ from torch.utils.data import Dataset as TorchDataset
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
+from ad_estimator.cli import count, fraction
 from training import data
 from training.engine import BEST, fit, init_runtime, load_checkpoint, main_first, seed_everything, wants_on_device
 from training.models.common import align_loss, task_loss
 from training.models.student import FRAME_COUNT, StudentConfig, build_student, override_config, student_preset
 from training.models.teacher import TEACHER_PRESETS
-from training.train_teacher import (RECIPE_OPTIONS, add_common_args, count, fit_config, fraction, load_teacher, recipe,
-                                    teacher_targets)
+from training.train_teacher import RECIPE_OPTIONS, add_common_args, fit_config, load_teacher, recipe, teacher_targets
 
 ABLATIONS = ("none", "align_only", "full")
 # SPEC 9: 0.1 align + 1.0 CE + 0.2 RegL1 (+ a small weight on the uncertainty head's NLL).

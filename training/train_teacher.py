@@ -11,6 +11,7 @@ from torch.utils.data import Dataset as TorchDataset
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
+from ad_estimator.cli import count, fraction, positive
 from ad_estimator.metrics import Predictions
 from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
 from training import data
@@ -147,28 +148,6 @@ def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: 
     normalised = np.concatenate(params)
     si = np.stack([denormalise(n, normalised[:, j]) for j, n in enumerate(PARAMETER_NAMES)], axis=1)
     return Predictions(ds.labels, ds.params_si, np.concatenate(probs), si, list(ds.episode_ids))
-
-
-def count(text: str) -> int:
-    if not text.isdigit():
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
-    return int(text)
-
-
-def positive(text: str) -> int:
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
-    return int(text)
-
-
-def fraction(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not 0.0 <= value < 1.0:
-        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1), got {text!r}")
-    return value
 
 
 def device_name(text: str) -> str:
