@@ -11,7 +11,7 @@
 #   SIZE [paper]                model size preset: tiny | small | paper
 #   TEACHER_EPOCHS [300] STUDENT_EPOCHS [20] BATCH [32] (per process) LR [1e-4]
 #   REGL1_WEIGHT [training's default, SPEC 9's 0.2]  the students' RegL1 weight (the bundled
-#                               model: 2.0). Not part of the resume check: use a fresh OUT to change it
+#                               model: 2.0). A resumed run refuses another value: use a fresh OUT to change it
 #   PREVIOUS_FRAMES [0]         N: streaming students' frame encoders also see the N earlier
 #                               observed frames (--previous-frames; the bundled model: 3). Fresh OUT to change it
 #   ABLATION_EPOCHS [STUDENT_EPOCHS]  epochs of the none and align_only ablations

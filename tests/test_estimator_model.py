@@ -221,7 +221,7 @@ def test_corrupt_model_names_the_file(tmp_path):
 def test_a_training_checkpoint_given_as_the_model_is_told_to_be_exported(tmp_path):
     path = tmp_path / "best.pt"
     path.write_bytes(b"PK\x03\x04" + b"\x00" * 64)  # a torch checkpoint is a zip archive
-    with pytest.raises(ModelError, match=r"best.pt looks like a training checkpoint: export it first \(python -m "
+    with pytest.raises(ModelError, match=r"best.pt looks like a training checkpoint: if it is a student's, export it first \(python -m "
                                          r"training export --checkpoint .*best.pt --out .*best.onnx\)"):
         EstimatorModel.load(path)
 

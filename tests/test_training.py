@@ -208,39 +208,46 @@ def test_best_checkpoint_is_the_epoch_with_the_lowest_selected_validation_metric
 
 
 def test_a_run_resumes_only_with_the_options_it_was_trained_with(bags, tmp_path, capsys):
-    """Another seed would move the validation split, another ablation make a different run under the
-    same name: refused before any weight loads, naming what differs. The same options resume; a
-    finished run says so and trains nothing."""
+    """Another seed would move the validation split, another ablation or model make a different run
+    under the same name: refused before any data loads, naming what differs as it is typed. The
+    same run (an equivalent --set included) resumes; a finished run says so and trains nothing."""
     cache = tmp_path / "cache"
     teacher = run_teacher(_args(bags, tmp_path / "t", cache, epochs=1))
     with pytest.raises(ValueError, match=r"was trained with --lr 0.003 --seed 0; this run asks for --lr 0.01 --seed 5"):
         run_teacher(_args(bags, tmp_path / "t", cache, epochs=1, lr=0.01, seed=5))
     with pytest.raises(ValueError, match=r"--epochs 1; this run asks for --epochs 3"):
         run_teacher(_args(bags, tmp_path / "t", cache, epochs=3))
+    config = TEACHER_PRESETS["tiny"].to_dict()
+    recipe = torch.load(tmp_path / "t" / engine.LAST, weights_only=True)["recipe"]
+    with pytest.raises(ValueError, match=r"torchrun processes 1; this run asks for torchrun processes 2"):
+        engine.check_resumable(tmp_path / "t", {**recipe, "torchrun processes": 2}, config, "teacher")
     capsys.readouterr()
     run_teacher(_args(bags, tmp_path / "t", cache, epochs=1))
     assert "the run is complete (1 of 1 epochs), nothing to train" in capsys.readouterr().out
     assert len(json.loads((tmp_path / "t" / "history.json").read_text())) == 1
 
     student = dict(kind="streaming", ablation="full", alpha=0.5, full_clips=False, teacher=str(teacher))
-    run_student(_args(bags, tmp_path / "s", cache, epochs=1, **student))
+    run_student(_args(bags, tmp_path / "s", cache, epochs=1, set=["dropout=0.2"], **student))
+    run_student(_args(bags, tmp_path / "s", cache, epochs=1, set=["dropout=.20"], **student))  # the same model
     with pytest.raises(ValueError, match=r"--ablation full; this run asks for --ablation none"):
-        run_student(_args(bags, tmp_path / "s", cache, epochs=1, **{**student, "ablation": "none"}))
-    with pytest.raises(ValueError, match=r"--previous-frames 0; this run asks for --previous-frames 3"):
+        run_student(_args(bags, tmp_path / "s", cache, epochs=1, set=["dropout=0.2"], **{**student, "ablation": "none"}))
+    with pytest.raises(ValueError, match=r"no --full-clips; this run asks for --full-clips\."):
+        run_student(_args(bags, tmp_path / "s", cache, epochs=1, set=["dropout=0.2"], **{**student, "full_clips": True}))
+    with pytest.raises(ValueError, match=r"holds another model \(dropout 0.2 -> 0.0, previous_frames 0 -> 3: set by"):
         run_student(_args(bags, tmp_path / "s", cache, epochs=1, previous_frames=3, **student))
     with pytest.raises(ValueError, match="is a teacher's checkpoint, not a student's"):
         run_student(_args(bags, tmp_path / "t", cache, epochs=1, **student))  # a teacher's run folder
     with pytest.raises(ValueError, match=f"{tmp_path / 't'} is a folder; pass a checkpoint in it, e.g. "
                                          f"{tmp_path / 't' / 'best.pt'}"):
         run_student(_args(bags, tmp_path / "s2", cache, epochs=1, **{**student, "teacher": str(tmp_path / "t")}))
-    # A checkpoint from before recipes were saved: a model of another shape gets one clear line, not
-    # load_state_dict's list of missing keys.
+    # A checkpoint from before recipes were saved resumes with the same model, whatever else changed.
     last = tmp_path / "s" / engine.LAST
     state = torch.load(last, weights_only=True)
     del state["recipe"]
     torch.save(state, last)
-    with pytest.raises(ValueError, match="holds a model of another shape than this run's"):
-        run_student(_args(bags, tmp_path / "s", cache, epochs=1, previous_frames=3, **student))
+    run_student(_args(bags, tmp_path / "s", cache, epochs=1, set=["dropout=0.2"], **{**student, "ablation": "none"}))
+    with pytest.raises(ValueError, match=r"holds another model \(dropout 0.2 -> 0.0: set by"):
+        run_student(_args(bags, tmp_path / "s", cache, epochs=1, **student))
 
 
 def test_training_on_the_test_splits_is_warned_about(tmp_path, capsys):
@@ -250,8 +257,8 @@ def test_training_on_the_test_splits_is_warned_about(tmp_path, capsys):
     run_teacher(_args(tmp_path / "bags" / "train", tmp_path / "ok", tmp_path / "cache", epochs=1))
     assert "test splits" not in capsys.readouterr().err
     run_teacher(_args(tmp_path / "bags", tmp_path / "mixed", tmp_path / "cache", epochs=1))
-    assert (f"warning: 3 unseen of the 9 training instances under {tmp_path / 'bags'} are from the benchmark's test "
-            "splits") in capsys.readouterr().err
+    assert (f"warning: the 9 instances under {tmp_path / 'bags'} (training and validation) include 3 unseen "
+            "instances of the benchmark's test splits") in capsys.readouterr().err
 
 
 def test_earlier_observed_slots_skip_unobserved_slots_and_repeat_the_oldest():

@@ -54,6 +54,15 @@ def test_an_out_that_is_a_folder_or_a_file_is_one_line(tmp_path, capsys):
     assert err[-1].startswith("python -m training teacher: [Errno 17] File exists") and "afile" in err[-1]
 
 
+def test_ctrl_c_while_the_pipeline_generates_bags_is_an_interrupt_not_a_failure(tmp_path, monkeypatch, capsys):
+    import ad_sim.generate
+
+    monkeypatch.setattr(ad_sim.generate, "main", lambda argv: 130)  # what generate returns on Ctrl-C
+    assert main(["pipeline", "--size", "tiny", "--data", str(tmp_path / "bags"), "--out", str(tmp_path / "run"),
+                 "--device", "cpu", "--no-progress"]) == 130
+    assert "interrupted" in capsys.readouterr().err
+
+
 def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
     data = tmp_path / "bags"
     for i, split in enumerate(("train", "seen", "unseen")):

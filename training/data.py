@@ -260,10 +260,10 @@ class Dataset:
         held_out = {split: self.meta["split"].count(split) for split in ("seen", "unseen")}
         if not any(held_out.values()):
             return None
-        which = ", ".join(f"{n} {split}" for split, n in held_out.items() if n)
-        return (f"warning: {which} of the {len(self)} training instances under {bags} are from the benchmark's test "
-                "splits, so scores on them would not measure generalisation; point --bags at the train split "
-                "(for example bags/paper/train)")
+        which = " and ".join(f"{n} {split}" for split, n in held_out.items() if n)
+        return (f"warning: the {len(self)} instances under {bags} (training and validation) include {which} "
+                "instances of the benchmark's test splits, so scores on those splits would not measure "
+                "generalisation; point --bags at the train split (for example bags/paper/train)")
 
     @property
     def num_videos(self) -> int:

@@ -184,19 +184,40 @@ class FitConfig:
 SELECT_METRICS = ("score", "regl1")
 
 
-def check_resumable(last: Path, state: dict, recipe: dict) -> None:
-    """Refuses to resume LAST under options other than those it was trained with: another seed or
-    validation fraction would move the validation split, another batch size or epoch count the
-    learning-rate schedule, another loss or model make a different run under the same name.
-    `recipe` maps command-line flags to values; checkpoints from before recipes were saved
-    recorded only --select."""
+def _shown(flag: str, value) -> str:
+    """A recipe entry as it is typed: --full-clips / no --full-clips, --encoder-channels 8,16."""
+    if isinstance(value, bool):
+        return flag if value else f"no {flag}"
+    if isinstance(value, (tuple, list)):
+        return f"{flag} {','.join(map(str, value))}"
+    return f"{flag} {value}"
+
+
+def check_resumable(out_dir: Path, recipe: dict, config: dict, stage: str) -> None:
+    """Refuses, before any data loads, to resume the run in `out_dir` under options other than
+    those it was trained with: another seed or validation fraction would move the validation
+    split, another batch size, epoch count or number of processes the learning-rate schedule,
+    another loss or model make a different run under the same name. `recipe` maps command-line
+    flags to values (checkpoints from before recipes were saved recorded only --select); `config`
+    is the resolved model config (from --size, --kind, --set, ..., and a student's teacher)."""
+    last = out_dir / LAST
+    if not last.exists():
+        return
+    try:
+        state = load_checkpoint(last, stage)
+    except ValueError as e:
+        raise ValueError(f"{e} (or delete {last} to start this run over)") from None
+    restart = f"Resume it with the same options, or train into a new --out (or delete {last} to start this run over)"
     recorded = state.get("recipe") or {"--select": state.get("select", "score")}
-    differing = [flag for flag in recorded if flag in recipe and recorded[flag] != recipe[flag]]
-    if differing:
-        was = " ".join(f"{flag} {recorded[flag]}" for flag in differing)
-        now = " ".join(f"{flag} {recipe[flag]}" for flag in differing)
-        raise ValueError(f"{last} was trained with {was}; this run asks for {now}. Resume it with the same options, "
-                         f"or train into a new --out (or delete {last} to start this run over)")
+    if differing := [flag for flag in recorded if flag in recipe and recorded[flag] != recipe[flag]]:
+        was = " ".join(_shown(flag, recorded[flag]) for flag in differing)
+        now = " ".join(_shown(flag, recipe[flag]) for flag in differing)
+        raise ValueError(f"{last} was trained with {was}; this run asks for {now}. {restart}")
+    saved = state["meta"].get("config", {})
+    if differing := [key for key in sorted(saved.keys() | config.keys()) if saved.get(key) != config.get(key)]:
+        change = ", ".join(f"{key} {saved.get(key)} -> {config.get(key)}" for key in differing)
+        raise ValueError(f"{last} holds another model ({change}: set by --size, --kind, --previous-frames, "
+                         f"--encoder-channels, --set, or a student's teacher). {restart}")
 
 
 def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: Path, cfg: FitConfig, rt: Runtime,
@@ -205,11 +226,10 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
 
     loss_fn(model, batch, train: bool) -> (loss tensor, {name: float tensor}); the batch is a dict
     of tensors on rt.device. Every epoch: validate, log, save LAST (model, optimizer, epoch,
-    step, RNG, history, meta, recipe) and BEST by the validation `cfg.select` metric (lower is
-    better). A run finds LAST in out_dir and resumes from it, if `recipe` (command-line flag ->
-    value) matches the one LAST was trained with.
+    step, RNG, history, meta, `recipe`: see check_resumable) and BEST by the validation
+    `cfg.select` metric (lower is better). A run finds LAST in out_dir and resumes from it; the
+    caller has checked that it may (check_resumable).
     """
-    recipe = {**(recipe or {}), "--select": cfg.select}
     if cfg.select not in SELECT_METRICS:
         raise ValueError(f"select must be one of {SELECT_METRICS}, got {cfg.select!r}")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -238,17 +258,8 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
     if last.exists():
         # Loaded on the CPU: load_state_dict moves weights and optimizer moments to the parameters'
         # device, and AdamW's step counters must stay on the CPU (on a GPU each step would sync).
-        try:
-            state = load_checkpoint(last, "student" if meta.get("config", {}).get("kind") else "teacher")
-        except ValueError as e:
-            raise ValueError(f"{e} (or delete {last} to start this run over)") from None
-        check_resumable(last, state, recipe)  # BEST so far was also picked by the run's --select metric
-        try:
-            raw.load_state_dict(state["model"])
-        except RuntimeError:  # a checkpoint from before recipes were saved, of another model shape
-            raise ValueError(f"{last} holds a model of another shape than this run's (--size, --kind, "
-                             "--previous-frames, --encoder-channels or --set differ); resume it with the options it "
-                             f"was trained with, or train into a new --out") from None
+        state = load_checkpoint(last)
+        raw.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         epoch, step, history, best = state["epoch"], state["step"], state["history"], state["best"]
         set_rng_state(state["rng"])
@@ -295,7 +306,7 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
                 save_checkpoint(out_dir / BEST, {"model": raw.state_dict(), "epoch": epoch, "meta": meta})
             save_checkpoint(last, {"model": raw.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch,
                                    "step": step, "rng": rng_state(), "history": history, "best": best,
-                                   "select": cfg.select, "recipe": recipe, "meta": meta})
+                                   "recipe": recipe or {}, "meta": meta})
             (out_dir / "history.json").write_text(json.dumps(history, indent=1))
             tqdm.write(f"{desc} " + " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                              for k, v in record.items()))

@@ -36,6 +36,8 @@ def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str) -
         print(f"generating {size}/{split} bags into {folder} (ad_sim.generate, resumable)")
         code = generate(["--size", size, "--split", split, "--seed", str(seed), "--out", str(folder),
                          "--device", "cuda" if device == "cuda" else "cpu"])
+        if code == 130:  # Ctrl-C: generate has said what is unfinished; stop as the pipeline's own Ctrl-C does
+            raise KeyboardInterrupt
         if code:
             raise SystemExit(f"ad_sim.generate failed for {size}/{split} (exit {code})")
     return folder

@@ -15,7 +15,8 @@ from tqdm import tqdm
 
 from ad_estimator.cli import count, fraction
 from training import data
-from training.engine import BEST, fit, init_runtime, load_checkpoint, main_first, seed_everything, wants_on_device
+from training.engine import (BEST, check_resumable, fit, init_runtime, load_checkpoint, main_first, seed_everything,
+                             wants_on_device)
 from training.models.common import align_loss, task_loss
 from training.models.student import FRAME_COUNT, StudentConfig, build_student, override_config, student_preset
 from training.models.teacher import TEACHER_PRESETS
@@ -181,9 +182,14 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     return p
 
 
-# Beyond the teacher's RECIPE_OPTIONS, what a student's resumed run must keep.
-STUDENT_RECIPE_OPTIONS = ("kind", "ablation", "alpha", "align_weight", "regl1_weight", "previous_frames",
-                          "encoder_channels", "set", "shift", "zoom", "full_clips")
+def student_recipe(args, rt) -> dict:
+    """The teacher's recipe and the student's loss and augmentation, only where they act (the model's
+    own options are in its config; student_loss says which weight acts in which ablation):
+    --full-clips only for streaming students, as clip students always see full clips."""
+    acting = {"regl1_weight": args.ablation != "align_only", "alpha": args.ablation != "none",
+              "align_weight": args.ablation == "full", "full_clips": args.kind == "streaming"}
+    names = ("ablation", "shift", "zoom") + tuple(name for name, acts in acting.items() if acts)
+    return recipe(args, rt, RECIPE_OPTIONS + names)
 
 
 def _channels(text: str) -> tuple[int, ...]:
@@ -220,6 +226,7 @@ def run(args) -> Path:
         model = build_student(config)
     except ValueError as e:
         raise SystemExit(str(e)) from None
+    check_resumable(Path(args.out), student_recipe(args, rt), config.to_dict(), "student")
     ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
     if rt.main and (warning := ds.test_split_warning(args.bags)):
@@ -246,5 +253,5 @@ def run(args) -> Path:
             "loss_weights": {"align": args.align_weight, "ce": CE_WEIGHT, "regl1": args.regl1_weight, "nll": NLL_WEIGHT}}
     out = Path(args.out)
     fit(model, train_set, val_set, student_loss(args.ablation, args.alpha, args.align_weight, args.regl1_weight), out, fit_config(args), rt, meta,
-        desc=f"student[{config.kind},{args.ablation}]", recipe=recipe(args, RECIPE_OPTIONS + STUDENT_RECIPE_OPTIONS))
+        desc=f"student[{config.kind},{args.ablation}]", recipe=student_recipe(args, rt))
     return out / BEST

@@ -15,8 +15,8 @@ from ad_estimator.cli import count, fraction, positive
 from ad_estimator.metrics import Predictions
 from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
 from training import data
-from training.engine import (BEST, SELECT_METRICS, FitConfig, fit, init_runtime, load_checkpoint, main_first,
-                             seed_everything, wants_on_device)
+from training.engine import (BEST, SELECT_METRICS, FitConfig, check_resumable, fit, init_runtime, load_checkpoint,
+                             main_first, seed_everything, wants_on_device)
 from training.evaluate import print_results, write_evaluation
 from training.models.common import task_loss
 from training.models.teacher import TEACHER_PRESETS, Teacher, TeacherConfig
@@ -151,10 +151,14 @@ def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: 
 
 
 def device_name(text: str) -> str:
-    """auto, cpu, cuda or cuda:<index>: what init_runtime takes (checked here, before data loads)."""
-    if text in ("auto", "cpu", "cuda") or (text.startswith("cuda:") and text[5:].isdigit()):
+    """auto or a torch device name (cpu, cuda, cuda:1, mps, ...), checked here, before any data loads."""
+    if text == "auto":
         return text
-    raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda or cuda:<index>, got {text!r}")
+    try:
+        torch.device(text)
+    except RuntimeError:
+        raise argparse.ArgumentTypeError(f"expected auto or a torch device such as cpu, cuda or cuda:1, got {text!r}") from None
+    return text
 
 
 def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr: float = 1e-4) -> None:
@@ -185,15 +189,16 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
                         "regl1 = RegL1 alone (favours the parameters planners use); keep it when resuming")
 
 
-# The options that make a training run what it is (engine.check_resumable): a resumed run must keep them.
-# Paths (--bags, --cache, --teacher) may move between machines, and --device, --threads, --amp,
-# --stop-after and progress only change how it runs.
-RECIPE_OPTIONS = ("size", "epochs", "batch_size", "lr", "min_lr", "weight_decay", "val_fraction", "seed")
+# The options that make a training run what it is, beside its model config (engine.check_resumable): a
+# resumed run must keep them. Paths (--bags, --cache, --teacher) may move between machines, and --device,
+# --threads, --amp, --stop-after and progress only change how it runs.
+RECIPE_OPTIONS = ("epochs", "batch_size", "lr", "min_lr", "weight_decay", "val_fraction", "seed", "select")
 
 
-def recipe(args, names: tuple[str, ...] = RECIPE_OPTIONS) -> dict:
-    """{command-line flag: value} of `names` in args."""
-    return {"--" + name.replace("_", "-"): getattr(args, name) for name in names}
+def recipe(args, rt, names: tuple[str, ...] = RECIPE_OPTIONS) -> dict:
+    """{command-line flag: value} of `names` in args, and the number of processes (with the batch
+    size, it sets the steps per epoch and so the learning-rate schedule)."""
+    return {"--" + name.replace("_", "-"): getattr(args, name) for name in names} | {"torchrun processes": rt.world}
 
 
 def fit_config(args) -> FitConfig:
@@ -217,11 +222,12 @@ def run(args) -> Path:
         torch.set_num_threads(args.threads)
     seed_everything(args.seed)
     rt = init_runtime(args.device)
+    config = TEACHER_PRESETS[args.size]
+    check_resumable(Path(args.out), recipe(args, rt), config.to_dict(), "teacher")
     ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
     if rt.main and (warning := ds.test_split_warning(args.bags)):
         tqdm.write(warning, file=sys.stderr)
-    config = TEACHER_PRESETS[args.size]
     model = Teacher(config).to(rt.device)
     on_device = None
     if wants_on_device(args.trajectories_on_device, rt):
@@ -230,7 +236,7 @@ def run(args) -> Path:
     fit(model, TrajectorySet(ds, train_idx, True, args.seed, model, on_device),
         TrajectorySet(ds, val_idx, False, args.seed, model, on_device),
         teacher_loss, out, fit_config(args), rt, meta={"config": config.to_dict(), "size": args.size},
-        desc="teacher", recipe=recipe(args))
+        desc="teacher", recipe=recipe(args, rt))
     return out / BEST
 
 

@@ -237,8 +237,9 @@ def _session(path: Path, threads: int, provider: str = "cpu") -> ort.InferenceSe
     try:
         return ort.InferenceSession(str(path), sess_options=options, providers=[PROVIDERS[provider]])
     except Exception as exc:  # onnxruntime raises several unrelated types for unreadable files
-        hint = (f"; {path.name} looks like a training checkpoint: export it first (python -m training export "
-                f"--checkpoint {path} --out {path.with_suffix('.onnx')})") if path.suffix in (".pt", ".pth") else ""
+        hint = (f"; {path.name} looks like a training checkpoint: if it is a student's, export it first (python -m "
+                f"training export --checkpoint {path} --out {path.with_suffix('.onnx')})") \
+            if path.suffix in (".pt", ".pth") else ""
         raise ModelError(f"cannot load ONNX model {path}: {exc}{hint}") from exc
 
 
