@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
+import igl  # at import, not inside the sampler: Ctrl-C during a native module's first import aborts the process
 import numpy as np
 import trimesh
 
@@ -82,8 +83,6 @@ def load_mesh(name: str) -> trimesh.Trimesh:
 @lru_cache(maxsize=256)  # ~10k points (120 kB) each at the simulator's spacing
 def _lattice_inside(name: str, spacing: float, scale: float) -> np.ndarray:
     """Cell-centred lattice points at `spacing` inside the mesh scaled by `scale` (read-only)."""
-    import igl
-
     mesh = _mesh(name)
     vertices = np.asarray(mesh.vertices, np.float64) * scale
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
