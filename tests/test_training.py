@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import shutil
 import subprocess
 import sys
 from argparse import Namespace
@@ -221,6 +222,13 @@ def test_a_run_resumes_only_with_the_options_it_was_trained_with(bags, tmp_path,
     recipe = torch.load(tmp_path / "t" / engine.LAST, weights_only=True)["recipe"]
     with pytest.raises(ValueError, match=r"torchrun processes 1; this run asks for torchrun processes 2"):
         engine.check_resumable(tmp_path / "t", {**recipe, "torchrun processes": 2}, config, "teacher")
+    # The same path with other bags: the validation split would be drawn over other instances.
+    more = tmp_path / "more_bags"
+    shutil.copytree(bags, more)
+    write_synthetic_bag(more / "extra", 1, views=2, seed=5)
+    with pytest.raises(ValueError, match=r"was trained with --bags contents [0-9a-f]{12}; this run asks for --bags "
+                                         r"contents [0-9a-f]{12}\."):
+        run_teacher(_args(more, tmp_path / "t", cache, epochs=1))
     capsys.readouterr()
     run_teacher(_args(bags, tmp_path / "t", cache, epochs=1))
     assert "the run is complete (1 of 1 epochs), nothing to train" in capsys.readouterr().out
@@ -235,6 +243,10 @@ def test_a_run_resumes_only_with_the_options_it_was_trained_with(bags, tmp_path,
         run_student(_args(bags, tmp_path / "s", cache, epochs=1, set=["dropout=0.2"], **{**student, "full_clips": True}))
     with pytest.raises(ValueError, match=r"holds another model \(dropout 0.2 -> 0.0, previous_frames 0 -> 3: set by"):
         run_student(_args(bags, tmp_path / "s", cache, epochs=1, previous_frames=3, **student))
+    other_teacher = run_teacher(_args(bags, tmp_path / "t_seed1", cache, epochs=1, seed=1))  # same latent size
+    with pytest.raises(ValueError, match=r"--teacher contents [0-9a-f]{12}; this run asks for --teacher contents"):
+        run_student(_args(bags, tmp_path / "s", cache, epochs=1, set=["dropout=0.2"],
+                          **{**student, "teacher": str(other_teacher)}))
     with pytest.raises(ValueError, match="is a teacher's checkpoint, not a student's"):
         run_student(_args(bags, tmp_path / "t", cache, epochs=1, **student))  # a teacher's run folder
     with pytest.raises(ValueError, match=f"{tmp_path / 't'} is a folder; pass a checkpoint in it, e.g. "

@@ -254,6 +254,14 @@ class Dataset:
     def __len__(self) -> int:
         return len(self.labels)
 
+    def fingerprint(self) -> str:
+        """Which instances, in which order (the validation split is drawn over their indices): equal
+        for the same bags wherever they lie, different if any instance is added, removed or moved."""
+        h = hashlib.sha256()
+        for episode_id, seed in zip(self.meta["episode_id"], self.meta["seed"]):
+            h.update(f"{episode_id}:{seed}\n".encode())
+        return h.hexdigest()[:12]
+
     def test_split_warning(self, bags) -> str | None:
         """A warning when these training instances include benchmark test instances (a --bags that
         points at the folder above the splits), which would score the model on what it trained on."""

@@ -6,6 +6,7 @@ torch.load(weights_only=True).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -184,6 +185,11 @@ class FitConfig:
 SELECT_METRICS = ("score", "regl1")
 
 
+def weights_digest(model: torch.nn.Module) -> str:
+    """sha256 (hex) over a model's weights: which model it is, whatever file it came from."""
+    return hashlib.sha256(b"".join(t.detach().cpu().numpy().tobytes() for t in model.state_dict().values())).hexdigest()
+
+
 def _shown(flag: str, value) -> str:
     """A recipe entry as it is typed: --full-clips / no --full-clips, --encoder-channels 8,16."""
     if isinstance(value, bool):
@@ -193,13 +199,14 @@ def _shown(flag: str, value) -> str:
     return f"{flag} {value}"
 
 
-def check_resumable(out_dir: Path, recipe: dict, config: dict, stage: str) -> None:
+def check_resumable(out_dir: Path, recipe: dict, config: dict | None, stage: str) -> None:
     """Refuses, before any data loads, to resume the run in `out_dir` under options other than
     those it was trained with: another seed or validation fraction would move the validation
     split, another batch size, epoch count or number of processes the learning-rate schedule,
     another loss or model make a different run under the same name. `recipe` maps command-line
     flags to values (checkpoints from before recipes were saved recorded only --select); `config`
-    is the resolved model config (from --size, --kind, --set, ..., and a student's teacher)."""
+    is the resolved model config (from --size, --kind, --set, ..., and a student's teacher), or None
+    for a check of recipe entries alone (those known only once the data has loaded)."""
     last = out_dir / LAST
     if not last.exists():
         return
@@ -214,7 +221,7 @@ def check_resumable(out_dir: Path, recipe: dict, config: dict, stage: str) -> No
         now = " ".join(_shown(flag, recipe[flag]) for flag in differing)
         raise ValueError(f"{last} was trained with {was}; this run asks for {now}. {restart}")
     saved = state["meta"].get("config", {})
-    if differing := [key for key in sorted(saved.keys() | config.keys()) if saved.get(key) != config.get(key)]:
+    if config is not None and (differing := [key for key in sorted(saved.keys() | config.keys()) if saved.get(key) != config.get(key)]):
         change = ", ".join(f"{key} {saved.get(key)} -> {config.get(key)}" for key in differing)
         raise ValueError(f"{last} holds another model ({change}: set by --size, --kind, --previous-frames, "
                          f"--encoder-channels, --set, or a student's teacher). {restart}")

@@ -8,7 +8,6 @@ valid (B,T) -> the same outputs; fewer than 25 frames are zero-padded inside the
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import warnings
 from pathlib import Path
@@ -28,6 +27,7 @@ from ad_sim.materials import (
     PARAMETER_RANGES,
 )
 from ad_estimator.model import frame_inputs
+from training.engine import weights_digest
 from training.evaluate import metrics_path
 from training.models.student import frame_channels, frame_encoder_input
 from training.train_student import load_student
@@ -102,7 +102,7 @@ def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None
     model = model.float().eval()
     config = model.config
     out.parent.mkdir(parents=True, exist_ok=True)
-    digest = hashlib.sha256(b"".join(p.detach().numpy().tobytes() for p in model.state_dict().values())).hexdigest()
+    digest = weights_digest(model)
     model_id = model_id or f"{out.stem}-{config.kind}-{meta.get('ablation', 'full')}-{digest[:8]}"
     h, w = config.input_size
     extra = {"ad.training": json.dumps({k: meta[k] for k in ("size", "ablation", "seed") if k in meta})}

@@ -16,7 +16,7 @@ from tqdm import tqdm
 from ad_estimator.cli import count, fraction
 from training import data
 from training.engine import (BEST, check_resumable, fit, init_runtime, load_checkpoint, main_first, seed_everything,
-                             wants_on_device)
+                             wants_on_device, weights_digest)
 from training.models.common import align_loss, task_loss
 from training.models.student import FRAME_COUNT, StudentConfig, build_student, override_config, student_preset
 from training.models.teacher import TEACHER_PRESETS
@@ -182,14 +182,19 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     return p
 
 
-def student_recipe(args, rt) -> dict:
+def student_recipe(args, rt, teacher: torch.nn.Module | None) -> dict:
     """The teacher's recipe and the student's loss and augmentation, only where they act (the model's
     own options are in its config; student_loss says which weight acts in which ablation):
-    --full-clips only for streaming students, as clip students always see full clips."""
+    --full-clips only for streaming students, as clip students always see full clips. And which
+    teacher it distils (its weights' digest: a teacher trained further under the same path is
+    another teacher)."""
     acting = {"regl1_weight": args.ablation != "align_only", "alpha": args.ablation != "none",
               "align_weight": args.ablation == "full", "full_clips": args.kind == "streaming"}
     names = ("ablation", "shift", "zoom") + tuple(name for name, acts in acting.items() if acts)
-    return recipe(args, rt, RECIPE_OPTIONS + names)
+    digest = {}
+    if teacher is not None and args.ablation != "none":
+        digest = {"--teacher contents": weights_digest(teacher)[:12]}
+    return recipe(args, rt, RECIPE_OPTIONS + names) | digest
 
 
 def _channels(text: str) -> tuple[int, ...]:
@@ -226,8 +231,11 @@ def run(args) -> Path:
         model = build_student(config)
     except ValueError as e:
         raise SystemExit(str(e)) from None
-    check_resumable(Path(args.out), student_recipe(args, rt), config.to_dict(), "student")
+    run_recipe = student_recipe(args, rt, teacher)
+    check_resumable(Path(args.out), run_recipe, config.to_dict(), "student")
     ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
+    bags = {"--bags contents": ds.fingerprint()}
+    check_resumable(Path(args.out), bags, None, "student")
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
     if rt.main and (warning := ds.test_split_warning(args.bags)):
         tqdm.write(warning, file=sys.stderr)
@@ -253,5 +261,5 @@ def run(args) -> Path:
             "loss_weights": {"align": args.align_weight, "ce": CE_WEIGHT, "regl1": args.regl1_weight, "nll": NLL_WEIGHT}}
     out = Path(args.out)
     fit(model, train_set, val_set, student_loss(args.ablation, args.alpha, args.align_weight, args.regl1_weight), out, fit_config(args), rt, meta,
-        desc=f"student[{config.kind},{args.ablation}]", recipe=student_recipe(args, rt))
+        desc=f"student[{config.kind},{args.ablation}]", recipe=run_recipe | bags)
     return out / BEST

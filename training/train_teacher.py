@@ -225,6 +225,8 @@ def run(args) -> Path:
     config = TEACHER_PRESETS[args.size]
     check_resumable(Path(args.out), recipe(args, rt), config.to_dict(), "teacher")
     ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
+    bags = {"--bags contents": ds.fingerprint()}
+    check_resumable(Path(args.out), bags, None, "teacher")
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
     if rt.main and (warning := ds.test_split_warning(args.bags)):
         tqdm.write(warning, file=sys.stderr)
@@ -236,7 +238,7 @@ def run(args) -> Path:
     fit(model, TrajectorySet(ds, train_idx, True, args.seed, model, on_device),
         TrajectorySet(ds, val_idx, False, args.seed, model, on_device),
         teacher_loss, out, fit_config(args), rt, meta={"config": config.to_dict(), "size": args.size},
-        desc="teacher", recipe=recipe(args, rt))
+        desc="teacher", recipe=recipe(args, rt) | bags)
     return out / BEST
 
 
