@@ -29,6 +29,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator")]
 
+from ad_estimator.cli import count, torch_device  # noqa: E402
 from common import falling_disc_clips, json_out, percentiles, positive  # noqa: E402  (benchmarks/, the script's folder)
 from training.models.student import FRAME_COUNT, build_student, frame_encoder_input, student_preset  # noqa: E402
 from training.models.teacher import TEACHER_PRESETS  # noqa: E402
@@ -106,9 +107,9 @@ def main(argv=None) -> int:
     parser.add_argument("--size", choices=["tiny", "small", "paper"], default="paper",
                         help="model preset of the random-weight models")
     parser.add_argument("--checkpoint", type=Path, default=None, help="a student checkpoint to time instead of random weights")
-    parser.add_argument("--device", choices=["cuda", "cpu"], default="cuda", help="torch device")
+    parser.add_argument("--device", type=torch_device, default="cuda", help="torch device: cuda, cuda:<index> or cpu")
     parser.add_argument("--iterations", type=positive, default=500, help="timed calls per figure")
-    parser.add_argument("--warmup", type=positive, default=50, help="untimed calls before each figure")
+    parser.add_argument("--warmup", type=count, default=50, help="untimed calls before each figure")
     parser.add_argument("--batch", type=positive, default=64, help="clips per batch for the throughput figure")
     parser.add_argument("--amp", action="store_true", help="bfloat16 autocast")
     parser.add_argument("--json", type=json_out, default=None, help="also write the figures here")

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "benchmarks")]
 
 from common import check_warp_device, positive  # noqa: E402
 from sim_throughput import SHAPE_SIZE, make_scene  # noqa: E402

@@ -20,8 +20,9 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # common
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT / "tests"), str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator"),
+                str(ROOT / "benchmarks")]  # tests: its ROS process helpers; benchmarks: common
 
 from ros_procs import recorder_counts, start, stop  # noqa: E402
 from sim_fixtures import fabricated_episode  # noqa: E402

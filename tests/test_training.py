@@ -258,6 +258,11 @@ def test_a_run_resumes_only_with_the_options_it_was_trained_with(bags, tmp_path,
     del state["recipe"]
     torch.save(state, last)
     run_student(_args(bags, tmp_path / "s", cache, epochs=1, set=["dropout=0.2"], **{**student, "ablation": "none"}))
+    # Older still: checkpoints before 8168bfd named the earlier-frame input previous_frame (a flag).
+    state = torch.load(last, weights_only=True)
+    state["meta"]["config"]["previous_frame"] = bool(state["meta"]["config"].pop("previous_frames"))
+    torch.save(state, last)
+    run_student(_args(bags, tmp_path / "s", cache, epochs=1, set=["dropout=0.2"], **student))
     with pytest.raises(ValueError, match=r"holds another model \(dropout 0.2 -> 0.0: set by"):
         run_student(_args(bags, tmp_path / "s", cache, epochs=1, **student))
 

@@ -199,14 +199,16 @@ def _shown(flag: str, value) -> str:
     return f"{flag} {value}"
 
 
-def check_resumable(out_dir: Path, recipe: dict, config: dict | None, stage: str) -> None:
+def check_resumable(out_dir: Path, recipe: dict, config: dict | None, stage: str,
+                    saved_config: Callable[[dict], dict] = dict) -> None:
     """Refuses, before any data loads, to resume the run in `out_dir` under options other than
     those it was trained with: another seed or validation fraction would move the validation
     split, another batch size, epoch count or number of processes the learning-rate schedule,
     another loss or model make a different run under the same name. `recipe` maps command-line
     flags to values (checkpoints from before recipes were saved recorded only --select); `config`
     is the resolved model config (from --size, --kind, --set, ..., and a student's teacher), or None
-    for a check of recipe entries alone (those known only once the data has loaded)."""
+    for a check of recipe entries alone (those known only once the data has loaded). `saved_config`
+    brings the config saved in `last.pt` to today's fields (older checkpoints named some otherwise)."""
     last = out_dir / LAST
     if not last.exists():
         return
@@ -220,7 +222,7 @@ def check_resumable(out_dir: Path, recipe: dict, config: dict | None, stage: str
         was = " ".join(_shown(flag, recorded[flag]) for flag in differing)
         now = " ".join(_shown(flag, recipe[flag]) for flag in differing)
         raise ValueError(f"{last} was trained with {was}; this run asks for {now}. {restart}")
-    saved = state["meta"].get("config", {})
+    saved = saved_config(state["meta"].get("config", {}))
     if config is not None and (differing := [key for key in sorted(saved.keys() | config.keys()) if saved.get(key) != config.get(key)]):
         change = ", ".join(f"{key} {saved.get(key)} -> {config.get(key)}" for key in differing)
         raise ValueError(f"{last} holds another model ({change}: set by --size, --kind, --previous-frames, "

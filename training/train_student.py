@@ -232,7 +232,8 @@ def run(args) -> Path:
     except ValueError as e:
         raise SystemExit(str(e)) from None
     run_recipe = student_recipe(args, rt, teacher)
-    check_resumable(Path(args.out), run_recipe, config.to_dict(), "student")
+    check_resumable(Path(args.out), run_recipe, config.to_dict(), "student",
+                    saved_config=lambda saved: StudentConfig.from_dict(saved).to_dict())
     ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
     bags = {"--bags contents": ds.fingerprint()}
     check_resumable(Path(args.out), bags, None, "student")

@@ -11,7 +11,7 @@ from torch.utils.data import Dataset as TorchDataset
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
-from ad_estimator.cli import count, fraction, positive
+from ad_estimator.cli import count, fraction, positive, torch_device_or_auto
 from ad_estimator.metrics import Predictions
 from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
 from training import data
@@ -150,17 +150,6 @@ def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: 
     return Predictions(ds.labels, ds.params_si, np.concatenate(probs), si, list(ds.episode_ids))
 
 
-def device_name(text: str) -> str:
-    """auto or a torch device name (cpu, cuda, cuda:1, mps, ...), checked here, before any data loads."""
-    if text == "auto":
-        return text
-    try:
-        torch.device(text)
-    except RuntimeError:
-        raise argparse.ArgumentTypeError(f"expected auto or a torch device such as cpu, cuda or cuda:1, got {text!r}") from None
-    return text
-
-
 def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr: float = 1e-4) -> None:
     p.add_argument("--bags", required=True, help="folder of training .mcap bags (searched recursively)")
     p.add_argument("--cache", default=".cache/training", help="array cache folder (keyed by bag content)")
@@ -178,7 +167,8 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
     p.add_argument("--seed", type=int, default=0,
                    help="seeds initialisation, the validation split (--val-fraction), batch order, "
                         "augmentation and the students' random prefixes")
-    p.add_argument("--device", type=device_name, default="auto", help="auto | cpu | cuda (torchrun: one process per GPU)")
+    p.add_argument("--device", type=torch_device_or_auto, default="auto",
+                   help="auto | cpu | cuda | cuda:<index> (torchrun: one process per GPU)")
     p.add_argument("--threads", type=count, default=0, help="torch CPU threads (0: torch default)")
     p.add_argument("--amp", action="store_true", help="bfloat16 autocast (CUDA only)")
     p.add_argument("--stop-after", type=count, default=0,
@@ -253,7 +243,7 @@ def build_eval_parser(p: argparse.ArgumentParser | None = None) -> argparse.Argu
     p.add_argument("--cache", default=".cache/training", help="array cache folder")
     p.add_argument("--out", required=True, help="report folder")
     p.add_argument("--title", help="report title (default: the checkpoint and the bags)")
-    p.add_argument("--device", type=device_name, default="auto", help="auto | cpu | cuda")
+    p.add_argument("--device", type=torch_device_or_auto, default="auto", help="auto | cpu | cuda | cuda:<index>")
     p.add_argument("--amp", action="store_true", help="bfloat16 autocast (CUDA only)")
     p.add_argument("--batch-size", type=int, default=64, help="instances per forward pass")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -29,6 +29,19 @@ def fraction(text: str) -> float:
     return value
 
 
+def torch_device(text: str) -> str:
+    """argparse type: cpu, cuda or cuda:<index> (what the GPU benchmarks and training run on; any
+    other torch device would fail only later, after the data has loaded)."""
+    if text in ("cpu", "cuda") or (text.startswith("cuda:") and text[5:].isdigit()):
+        return text
+    raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:<index>, got {text!r}")
+
+
+def torch_device_or_auto(text: str) -> str:
+    """argparse type: auto (cuda if torch sees a GPU, else cpu) or a torch_device."""
+    return text if text == "auto" else torch_device(text)
+
+
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Appends "(default: X)" only where there is a default worth showing (not None, False or an
     empty list) and the help text does not already state it."""
