@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ad_estimator.cli import positive  # shared with training; the scripts import it from here
+from ad_estimator.cli import positive
 
 FRAME_COUNT = 25
 

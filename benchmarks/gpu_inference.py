@@ -29,8 +29,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator")]
 
-from ad_estimator.cli import count, torch_device  # noqa: E402
-from common import falling_disc_clips, json_out, percentiles, positive  # noqa: E402  (benchmarks/, the script's folder)
+from ad_estimator.cli import count, positive, torch_device  # noqa: E402
+from common import falling_disc_clips, json_out, percentiles  # noqa: E402  (benchmarks/, the script's folder)
 from training.models.student import FRAME_COUNT, build_student, frame_encoder_input, student_preset  # noqa: E402
 from training.models.teacher import TEACHER_PRESETS  # noqa: E402
 

@@ -32,12 +32,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_ws" / "src" / "ad_sim")]
 
-from ad_estimator.cli import HelpFormatter  # noqa: E402
+from ad_estimator.cli import HelpFormatter, positive  # noqa: E402
 from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel, ModelError  # noqa: E402
 from ad_estimator.parameters import PARAMETERS as NODE  # noqa: E402
 from ad_estimator.window import FrameWindow  # noqa: E402
-from common import falling_disc_clips, json_out, percentiles, positive  # noqa: E402  (benchmarks/, the script's folder)
+from common import falling_disc_clips, json_out, percentiles  # noqa: E402  (benchmarks/, the script's folder)
 
 TOPIC = "/latency_benchmark/mask"
 FRAME_NS = 25_000_000

@@ -19,7 +19,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "benchmarks")]
 
-from common import check_warp_device, positive  # noqa: E402
+from ad_estimator.cli import positive  # noqa: E402
+from common import check_warp_device  # noqa: E402
 from sim_throughput import SHAPE_SIZE, make_scene  # noqa: E402
 
 from ad_sim import mpm  # noqa: E402

@@ -21,8 +21,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT / "tests"), str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator"),
-                str(ROOT / "benchmarks")]  # tests: its ROS process helpers; benchmarks: common
+sys.path[:0] = [str(ROOT / "tests"), str(ROOT / "ros_ws" / "src" / "ad_sim"),
+                str(ROOT / "ros_ws" / "src" / "ad_estimator")]  # tests: its ROS process helpers
 
 from ros_procs import recorder_counts, start, stop  # noqa: E402
 from sim_fixtures import fabricated_episode  # noqa: E402
@@ -30,7 +30,7 @@ from sim_fixtures import fabricated_episode  # noqa: E402
 from ad_sim import messages  # noqa: E402
 from ad_sim.generate import write_episodes  # noqa: E402
 from ad_sim.rosbag import BagReader, BagWriter  # noqa: E402
-from common import positive  # noqa: E402
+from ad_estimator.cli import positive  # noqa: E402
 
 
 def main() -> None:

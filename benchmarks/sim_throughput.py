@@ -28,7 +28,8 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "ros_ws" / "src" / pkg
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common, also when a test imports this file by path
 
 import warp as wp  # noqa: E402
-from common import check_warp_device, json_out, positive, quiet_warp  # noqa: E402
+from ad_estimator.cli import positive  # noqa: E402
+from common import check_warp_device, json_out, quiet_warp  # noqa: E402
 
 quiet_warp()
 
