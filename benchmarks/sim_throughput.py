@@ -180,6 +180,9 @@ def main(argv=None) -> int:
     if args.block_dim:
         mpm.BLOCK_DIM = args.block_dim
     check_warp_device(parser, args.device)
+    if args.profile and not wp.get_device(args.device).is_cuda:  # wp.timing_* records CUDA activity only
+        parser.error(f"--profile times each CUDA kernel; Warp records no kernel timings on {args.device}, so give "
+                     "--device cuda (or leave out --profile)")
     figures = bench_episodes(args) if args.episodes else bench_scenes(args)
     for key, value in figures.items():
         print(f"{key:>22}: {value:.4g}" if isinstance(value, float) else f"{key:>22}: {value}")

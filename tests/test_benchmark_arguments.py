@@ -32,6 +32,8 @@ CASES = [
     ("sim_throughput", ["--instances", "-2"], "argument --instances: expected a whole number >= 1, got '-2'"),
     ("sim_throughput", ["--batch", "0"], "argument --batch: expected a whole number >= 1"),
     ("sim_throughput", ["--block-dim", "-4"], "argument --block-dim: expected a whole number >= 1"),
+    ("sim_throughput", ["--device", "cpu", "--profile"],  # it printed an empty kernel table
+     "--profile times each CUDA kernel; Warp records no kernel timings on cpu, so give --device cuda"),
     ("gpu_inference", ["--iterations", "0"], "argument --iterations: expected a whole number >= 1"),
     ("gpu_inference", ["--batch", "0"], "argument --batch: expected a whole number >= 1"),
     ("gpu_inference", ["--device", "gpu"], "argument --device: expected cpu, cuda or cuda:<index>, got 'gpu'"),

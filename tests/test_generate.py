@@ -73,6 +73,24 @@ def test_ctrl_c_says_what_to_do_without_a_traceback(tmp_path):
     assert not (tmp_path / "unseen-0of1" / DONE_MARKER).exists()
 
 
+def test_ctrl_c_before_any_shard_is_one_line_too(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C while the instances are drawn (or Warp starts) once escaped as a traceback."""
+    import ad_sim.instances
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ad_sim.instances, "benchmark", interrupted)
+    try:
+        code = main(["--quiet", "--size", "tiny", "--split", "unseen", "--out", str(tmp_path)])
+    except KeyboardInterrupt:  # a failure of this test, not a Ctrl-C of the test run
+        pytest.fail("the KeyboardInterrupt escaped main")
+    assert code == 130
+    assert capsys.readouterr().err == ("interrupted while no shard was being written; run the same command again to "
+                                       "go on (finished shards are kept)\n")
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.ros
 def test_resume_after_kill_gives_the_uninterrupted_bags(tmp_path):
     args = ["--size", "tiny", "--split", "unseen", "--limit", "2", "--shards", "2", "--batch", "1"]

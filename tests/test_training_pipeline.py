@@ -170,3 +170,19 @@ def test_evaluate_says_when_not_every_episode_was_scored(tmp_path, capsys):
         assert any("unseen-masks-0of1 holds no complete episode" in p for p in source["source_problems"])
     recorded = json.loads((tmp_path / "default.metrics.json").read_text())["evaluation"]["samples"]
     assert recorded["episodes"] == 2 and recorded["source_problems"] == source["source_problems"]
+
+
+def test_evaluate_on_the_train_split_is_warned_about(tmp_path, capsys):
+    """Scores on the split models are trained on flatter them: evaluate says so in one line, and only then."""
+    model = REPO / "ros_ws" / "src" / "ad_estimator" / "ad_estimator" / "models" / "default.onnx"
+    errors = {}
+    for split in ("unseen", "train"):
+        bags = write_synthetic_bag(tmp_path / "bags" / split, 3, views=1, seed=4, split=split)
+        assert main(["evaluate", "--model", str(model), "--bags", str(bags), "--cache", str(tmp_path / "c"),
+                     "--out", str(tmp_path / split), "--frames", "25", "--no-record", "--no-progress"]) == 0
+        errors[split] = capsys.readouterr().err
+    assert "train split" not in errors["unseen"]
+    assert errors["train"].splitlines()[-1:] == [
+        f"warning: 3 of the 3 instances scored under {tmp_path / 'bags' / 'train'} are from the benchmark's train "
+        "split, which models are trained on, so these scores do not measure generalisation; evaluate on the seen "
+        "or unseen split (for example bags/paper/unseen)"]

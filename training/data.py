@@ -273,6 +273,16 @@ class Dataset:
                 "instances of the benchmark's test splits, so scores on those splits would not measure "
                 "generalisation; point --bags at the train split (for example bags/paper/train)")
 
+    def train_split_warning(self, bags) -> str | None:
+        """The other way round, for an evaluation: a warning when these instances include the benchmark's
+        train split, which models are trained on, so scores on them flatter the model."""
+        trained_on = self.meta["split"].count("train")
+        if not trained_on:
+            return None
+        return (f"warning: {trained_on} of the {len(self)} instances scored under {bags} are from the benchmark's "
+                "train split, which models are trained on, so these scores do not measure generalisation; "
+                "evaluate on the seen or unseen split (for example bags/paper/unseen)")
+
     @property
     def num_videos(self) -> int:
         return len(self.video_instance)

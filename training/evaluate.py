@@ -83,6 +83,8 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
         entry = {**summary(results), "episodes": len(ds)} | ({"source_problems": ds.problems} if ds.problems else {})
         print(f"recorded in {update_model_metrics(model_path, {'evaluation': {Path(bags).name: entry}})}")
     print_results(results, title, out)
+    if warning := ds.train_split_warning(bags):
+        print(warning, file=sys.stderr)
     if ds.problems:
         print(f"warning: only {len(ds)} complete episodes under {bags} were scored; {len(ds.problems)} problem(s) "
               f"in the bags are listed above and in predictions.json (masks-only bags, from --skip-particles, are "

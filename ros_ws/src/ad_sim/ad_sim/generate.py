@@ -157,6 +157,20 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    writing: list[Path] = []  # the shard under way, for the message on Ctrl-C
+    try:
+        return _generate(argv, writing)
+    except KeyboardInterrupt:  # wherever it lands (arguments, instances, Warp start-up, a shard): no traceback
+        if writing:  # it has no DONE marker yet, so a re-run redoes it
+            print(f"interrupted: {writing[0]} is unfinished; run the same command again to redo it (finished shards "
+                  "are kept)", file=sys.stderr)
+        else:
+            print("interrupted while no shard was being written; run the same command again to go on (finished "
+                  "shards are kept)", file=sys.stderr)
+        return 130
+
+
+def _generate(argv: list[str] | None, writing: list[Path]) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     if args.list_shapes:
@@ -194,6 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     for index in index_range:
         folder = shard_dir(args.out, name, index, count)
         custom = {"generator": "ad_sim.generate", "shard": f"{index}/{count}", **source}
+        writing.append(folder)
         try:
             wrote = generate_shard(
                 instances[index::count],
@@ -210,10 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         except (BagError, ShardMismatch) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
-        except KeyboardInterrupt:  # the shard has no DONE marker yet, so a re-run redoes it
-            print(f"interrupted: {folder} is unfinished; run the same command again to redo it (finished shards "
-                  "are kept)", file=sys.stderr)
-            return 130
+        writing.clear()
         print(f"{folder}: {'written' if wrote else 'already done, skipped'}", file=sys.stderr)
     return 0
 
