@@ -219,10 +219,19 @@ SECTION_13 = shipped_and_variants("uniformer128", {"uni128": "UniFormer, 20 epoc
     "unseen, `uni128`, scored here on the CPU-regenerated split": "experiments/uniformer128/uni128_unseen_cpu.json"}
 
 
+# section 14: the learning curve (unseen only)
+LEARNING_CURVE = {"q25": "1/4: 2,250 instances, 80 epochs", "h50": "1/2: 4,500 instances, 40 epochs",
+                  "d2": "2x: 18,000 instances, 10 epochs"}
+SECTION_14 = {"unseen, `h3reg2`, seed 0 (**shipped**)": SHIPPED_SEED_0["unseen, `h3reg2`, seed 0 (**shipped**)"]} | {
+    f"unseen, `{run}` ({what})": f"experiments/learning_curve/{run}_unseen.json" for run, what in LEARNING_CURVE.items()
+} | {"unseen, `t30_s0` (1x: 9,000 instances, 20 epochs, section 11)": "experiments/long_teacher/t30_s0_unseen.json",
+     "unseen, `t30_s1` (1x, seed 1, section 11)": "experiments/long_teacher/t30_s1_unseen.json"}
+
+
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
                                                    ("## 7. ", SECTION_7), ("## 8. ", SECTION_8), ("## 9. ", SECTION_9),
                                                    ("## 10. ", SECTION_10), ("## 11. ", SECTION_11),
-                                                   ("## 13. ", SECTION_13)])
+                                                   ("## 13. ", SECTION_13), ("## 14. ", SECTION_14)])
 def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
     for label, file in rows_to_files.items():
@@ -364,3 +373,18 @@ def test_estimator_doc_framing_table_is_the_benchmarks_file():
         result, against = now["results"][camera], now["against_simulator_masks"][camera]
         assert rows[row] == [f"{result['regl1']:.3f}", f"{against['same_family']:.3f}",
                              f"{against['regl1_between_estimates']:.3f}"]
+
+
+def test_experiments_section_14_fit_table_is_the_histories():
+    """Section 14: each run's fit (the selected epoch by SPEC's score, training and validation at the end and at
+    that epoch) is its history, and its unseen RegL1 its metrics file."""
+    rows = section_rows(14)
+    runs = {run: f"learning_curve/{run}" for run in LEARNING_CURVE} | {
+        run: f"long_teacher/{run}" for run in ("t30_s0", "t30_s1")}
+    for run, stem in runs.items():
+        history = epoch_rows(f"{stem}.history.json")
+        best, last = min(history, key=lambda r: r["val_score"]), history[-1]
+        unseen = json.loads((RESULTS / "experiments" / f"{stem}_unseen.json").read_text())["frames"]["25"]
+        assert rows[f"`{run}`"] == [str(len(history)), str(best["epoch"])] + [f"{v:.3f}" for v in (
+            last["train_regl1"], last["train_ce"], best["val_regl1"], min(r["val_regl1"] for r in history),
+            best["val_ce"], last["val_ce"], unseen["regl1"])], run

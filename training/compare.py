@@ -134,7 +134,8 @@ def plot_regl1(regl1: dict[str, np.ndarray], path: Path, ylabel: str, title: str
     for i, values in enumerate(regl1.values()):
         ax.scatter(np.full(len(values), i), values, color="C0", zorder=2, label="run" if i == 0 else None)
         ax.hlines(values.mean(), i - 0.25, i + 0.25, color="k", label="group mean" if i == 0 else None)
-    ax.set_xticks(range(len(regl1)), list(regl1))
+    # long group names would run into each other under neighbouring groups
+    ax.set_xticks(range(len(regl1)), ["\n".join(textwrap.wrap(name, 16)) for name in regl1], fontsize=8)
     ax.set_xlim(-0.75, len(regl1) - 0.25)
     ax.set_xlabel("group")
     ax.set_ylabel(ylabel)
