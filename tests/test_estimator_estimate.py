@@ -245,3 +245,31 @@ def test_clear_errors_before_any_work(setup, tmp_path, capsys):
     assert "missing.onnx" in capsys.readouterr().err
     assert run(model, tmp_path / "no_bag") == 1
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_frames_out_of_stamp_order_are_skipped_as_the_node_skips_them(setup, tmp_path, capsys):
+    """Two swapped frames once restarted the window: the episode vanished from the CSV, silently."""
+    model, _ = setup
+    masks = falling_masks(seed=9)
+    with BagWriter(tmp_path / "swapped") as writer:
+        writer.add_topic(CAMERA, messages.IMAGE_TYPE, [qos_profile(**messages.topic_qos(messages.mask_topic(0)))])
+        for log, k in enumerate([*range(10), 11, 10, *range(12, 25)]):
+            writer.write(CAMERA, log + 1, messages.mask_message(masks[k], k * 25_000_000, "robot/camera"))
+    with pytest.warns(UserWarning, match=r"swapped: 1 frame\(s\) came after a later-stamped frame and were skipped"):
+        assert run(model, tmp_path / "swapped", "--topic", CAMERA, "--out", tmp_path / "e.csv") == 0
+    assert "1 estimate(s) of 1 episode(s)" in capsys.readouterr().out
+    (row,) = read_csv(tmp_path / "e.csv")
+    assert (row["episode"], row["frames_used"], row["complete"]) == ("1", "25", "True")
+
+
+def test_an_unstamped_camera_is_named_as_the_reason_for_no_estimate(setup, tmp_path, capsys):
+    model, _ = setup
+    with BagWriter(tmp_path / "unstamped") as writer:
+        writer.add_topic(CAMERA, messages.IMAGE_TYPE, [qos_profile(**messages.topic_qos(messages.mask_topic(0)))])
+        for log, mask in enumerate(falling_masks(seed=9)):
+            writer.write(CAMERA, log + 1, messages.mask_message(mask, 0, "robot/camera"))
+    with pytest.warns(UserWarning, match=r"24 frame\(s\) had the stamp of the frame before and were skipped"):
+        assert run(model, tmp_path / "unstamped", "--topic", CAMERA, "--out", tmp_path / "e.csv") == 1
+    assert capsys.readouterr().err.endswith(
+        "25 frame(s) read, 1 accepted; 24 frame(s) skipped ({'repeated stamp': 24}). Frames that repeat the stamp "
+        "before them are skipped: was the camera stamping its images?\n")

@@ -450,3 +450,27 @@ def test_random_images_either_convert_or_are_rejected(height, width, encoding, s
     except ImageRejected:
         return
     assert mask.shape == (height, width) and mask.dtype == np.uint8 and set(np.unique(mask)) <= {0, 255}
+
+
+def test_a_model_with_broken_weights_is_refused_at_load(tmp_path):
+    """NaN weights (a diverged run exported anyway) once gave 'jelly' with NaN parameters, published as valid."""
+    path = build_clip_model(tmp_path / "m.onnx")
+    model = onnx.load(str(path))
+    weights = next(t for t in model.graph.initializer if t.data_type == onnx.TensorProto.FLOAT and len(t.dims) == 2)
+    weights.CopyFrom(onnx.numpy_helper.from_array(np.full(tuple(weights.dims), np.nan, np.float32), weights.name))
+    onnx.save(model, str(path))
+    with pytest.raises(ModelError, match=r"m.onnx: output '\w+' is not finite \(NaN or inf\) in the trial run, so "
+                                         r"its weights are broken; re-export"):
+        EstimatorModel.load(path)
+
+
+def test_no_estimate_is_made_of_outputs_that_are_not_finite(tmp_path):
+    """Outputs that turn NaN for one input only (the trial run passed): an error, not an estimate."""
+    model = EstimatorModel.load(build_clip_model(tmp_path / "m.onnx"))
+    session = model._session
+    model._session = types.SimpleNamespace(run=lambda names, feeds, options=None: [
+        np.where(np.arange(o.size).reshape(o.shape) == 0, np.nan, o) for o in session.run(names, feeds, options)])
+    masks = falling_masks(25, size=32)
+    with pytest.raises(ValueError, match=r"m.onnx: the model's outputs are not finite \(NaN or inf\) for these 25 "
+                                         r"frames, so there is no estimate"):
+        model.predict(np.stack([model.encode(m) for m in masks]), np.ones(25, bool))

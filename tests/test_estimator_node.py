@@ -241,6 +241,33 @@ def test_diagnostics(ros, model_paths):
         float(values[key])
 
 
+def test_late_and_repeated_stamps_are_counted_warned_and_lose_no_episode(ros, model_paths):
+    """Two frames swapped upstream once restarted the window (no estimate, and a new episode anchored
+    mid-fall); an unstamped camera gave nothing, silently. Now: the estimate, and WARN saying why."""
+    t = start(ros, model_paths["streaming"], diagnostics_period=0.2)
+    arrays = []
+    t.client.create_subscription(DiagnosticArray, "/diagnostics", arrays.append, 10)
+    masks = falling_masks(seed=10)
+    order = [*range(10), 11, 10, *range(12, 25)]
+    for k in order:
+        t.publisher.publish(image_msg(masks[k], 10**9 + k * DT))
+    assert wait_for(lambda: len(t.estimates) == 1)
+    assert t.estimates[0].frames_used == 25 and stamp_ns(t.estimates[0].oldest_stamp) == 10**9
+    assert t.node.counters["late"] == 1 and t.node.window.episodes == 1
+
+    def warned(what):
+        return any(a.status[0].level == DiagnosticStatus.WARN and what in a.status[0].message for a in arrays)
+
+    assert wait_for(lambda: warned("1 frames late"))
+    for mask in falling_masks(seed=11):  # a camera that does not stamp: 5 s later, then all at one stamp
+        t.publisher.publish(image_msg(mask, 6 * 10**9))
+    assert wait_for(lambda: t.node.counters["duplicate"] == 24)
+    assert wait_for(lambda: warned("frames with a repeated stamp"))  # in one period or split over two
+    values = {kv.key: kv.value for kv in arrays[-1].status[0].values}
+    assert values["frames_late"] == "1" and values["frames_duplicate"] == "24"
+    assert len(t.estimates) == 1
+
+
 def test_a_best_effort_camera_against_a_reliable_subscription_is_reported(ros, model_paths):
     """DDS delivers nothing from a best-effort publisher to a reliable subscription: the node counts
     the publisher and puts it in /diagnostics as a warning, instead of waiting in silence."""

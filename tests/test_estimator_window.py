@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ad_estimator.window import FrameWindow, clip_output, clip_stamps
+from ad_estimator.window import LATE_FRAMES, FrameWindow, clip_output, clip_stamps
 
 DT = 25_000_000  # ns
 SIZE = (128, 128)
@@ -137,7 +137,7 @@ def test_window_restarts(cause):
     if cause == "gap":
         start += 400_000_000
     elif cause == "backwards":
-        start -= 5 * DT
+        start -= (LATE_FRAMES + 1) * DT  # further back than reordering goes: the stream started over
     elif cause == "size":
         start += DT
         size = (64, 64)
@@ -166,7 +166,21 @@ def test_duplicate_stamp_is_ignored():
     feed(window, [0, DT])
     calls = []
     window.add(DT, frame(), lambda *_: calls.append(1) or np.zeros(1, np.float32))
-    assert calls == [] and window.stats.ignored == 1
+    assert calls == [] and window.stats.duplicates == 1
+
+
+@pytest.mark.parametrize("order, late", [
+    ([*range(10), 11, 10, *range(12, 25)], 1),  # two neighbours swapped upstream
+    ([*range(10), 12, 10, 11, *range(13, 25)], 2),  # one frame overtaking two
+    ([*range(15), 11, *range(15, 25)], 1),  # a frame sent again, LATE_FRAMES - 1 intervals late
+])
+def test_a_frame_out_of_stamp_order_is_dropped_and_the_episode_goes_on(order, late):
+    """A late frame once restarted the window: the episode was lost and a new one anchored mid-fall."""
+    window = FrameWindow(0.025, 25, history=1)
+    (out,) = feed(window, [k * DT for k in order])
+    assert window.stats.late == late and window.episodes == 1 and out.episode_start_ns == 0
+    assert out.complete and out.valid.all()  # each late frame's slot went to the in-order frame beside it
+    assert window.stats.restarts == {"first": 1}
 
 
 def test_anytime_policy_schedule():

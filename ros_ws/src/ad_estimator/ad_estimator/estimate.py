@@ -86,6 +86,11 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
             continue
         collect(window.add(stamp, mask, model.encode))
     collect(window.flush())
+    for kind, count, why in (("late", window.stats.late, "came after a later-stamped frame"),
+                             ("repeated stamp", window.stats.duplicates, "had the stamp of the frame before")):
+        if count:  # skipped by the window, as the node skips them
+            warnings.warn(f"{bag}: {count} frame(s) {why} and were skipped, as the node skips them")
+            tally[kind] += count
     return rows
 
 
@@ -176,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
         accepted = frames - sum(tally.values())
         if damaged:
             hint = " Pass --recover to read the undamaged part of the damaged bags."
+        elif 0 < accepted <= tally["repeated stamp"]:
+            hint = " Frames that repeat the stamp before them are skipped: was the camera stamping its images?"
         elif accepted and not failed and args.output_policy == "episode":
             hint = (" Episodes shorter than the model's frame slots give no estimate under the episode policy; "
                     "try --output-policy anytime.")

@@ -309,6 +309,9 @@ class EstimatorModel:
             if output.shape[-1] != len(names):
                 raise ModelError(f"{info.path}: output {name!r} has {output.shape[-1]} values but metadata {key} "
                                  f"names {len(names)} ({', '.join(names)}); re-export the model")
+            if not np.isfinite(output).all():  # broken weights: every estimate would be NaN, published as valid
+                raise ModelError(f"{info.path}: output {name!r} is not finite (NaN or inf) in the trial run, so its "
+                                 "weights are broken; re-export the model from a checkpoint that trained")
 
     @classmethod
     def load(cls, path: str | Path, threads: int = 1, provider: str = "cpu") -> "EstimatorModel":
@@ -392,6 +395,9 @@ class EstimatorModel:
             raise ValueError(f"features {features.shape} / valid {valid.shape} do not fit the model "
                              f"(up to {count} slots of {self.feature_shape})")
         outputs = self._run(features, valid)
+        if not all(np.isfinite(output).all() for output in outputs):  # never an estimate made of NaN
+            raise ValueError(f"{self.info.path}: the model's outputs are not finite (NaN or inf) for these "
+                             f"{int(valid.sum())} frames, so there is no estimate")
         logits, params = outputs[0][0], outputs[1][0]
         logvar = outputs[2][0] if self._has_logvar else None
         return self._estimate(logits, params, logvar, int(valid.sum()), time.perf_counter() - start)

@@ -106,11 +106,11 @@ class EstimatorNode(Node):
         self.idle_flush = p["idle_flush"]
 
         self.queue: queue.Queue = queue.Queue(maxsize=p["queue_size"])
-        self.counters = dict(received=0, rejected=0, dropped=0, processed=0, published=0, errors=0, off_framing=0,
-                             incompatible_publishers=0)
+        self.counters = dict(received=0, rejected=0, dropped=0, late=0, duplicate=0, processed=0, published=0,
+                             errors=0, off_framing=0, incompatible_publishers=0)
         self.latencies: deque[float] = deque(maxlen=1000)  # arrival -> publish, seconds
         self.model_times: deque[float] = deque(maxlen=1000)
-        self._period_counts = dict(received=0, published=0, dropped=0, rejected=0)
+        self._period_counts = dict(received=0, published=0, dropped=0, rejected=0, late=0, duplicate=0, errors=0)
         self._lock = threading.Lock()  # counters and queue clearing
         self._generation = 0  # bumped by ~/reset; the worker resets its window when it sees a new one
         self._window_generation = 0
@@ -211,10 +211,21 @@ class EstimatorNode(Node):
             encode_time[0] = time.perf_counter() - start
             return feature
 
-        episodes = self.window.episodes
+        episodes, last = self.window.episodes, self.window.last_stamp_ns
+        late, duplicates = self.window.stats.late, self.window.stats.duplicates
         outputs = self.window.add(stamp, mask, encode)
         if self.window.episodes != episodes:  # this frame started an episode
             self._check_framing(mask)
+        elif self.window.stats.late != late:
+            self._count("late")
+            self.warn("late", f"frame stamped {stamp / 1e9:.3f} s came after one stamped {last / 1e9:.3f} s: dropped "
+                              "as late (its slot is settled); frames must arrive in stamp order, so check what "
+                              "publishes or relays them")
+        elif self.window.stats.duplicates != duplicates:
+            self._count("duplicate")
+            self.warn("duplicate", f"frame stamped {stamp / 1e9:.3f} s like the one before it: ignored; a camera "
+                                   "that does not stamp its images gives no estimates, so stamp each mask with the "
+                                   "capture time of its image")
         self._count("processed")
         return [self._publish(out, msg.header.frame_id, arrival, encode_time[0]) for out in outputs]
 
@@ -354,10 +365,13 @@ class EstimatorNode(Node):
         status = DiagnosticStatus()
         status.name = f"{self.get_fully_qualified_name()}: material estimator"
         status.hardware_id = self.info.model_id
-        problems = [f"{recent[k]} frames {k}" for k in ("dropped", "rejected") if recent[k]]
+        problems = [f"{recent[k]} frames {k}" for k in ("dropped", "rejected", "late") if recent[k]]
+        problems += [f"{recent['duplicate']} frames with a repeated stamp"] if recent["duplicate"] else []
+        problems += [f"{recent['errors']} processing errors (see the log)"] if recent["errors"] else []
         if self._unheard_publisher:
             problems.append(f"no frames; {stats['incompatible_publishers']} input publisher(s) with incompatible QoS seen")
-        status.level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
+        status.level = (DiagnosticStatus.ERROR if recent["errors"] else DiagnosticStatus.WARN if problems
+                        else DiagnosticStatus.OK)
         status.message = "; ".join(problems) or "ok"
         values = {
             "model_id": self.info.model_id, "model_path": str(self.info.path), "input_topic": self.input_topic,
@@ -366,7 +380,8 @@ class EstimatorNode(Node):
             "latency_p50_ms": f"{stats['latency_p50_ms']:.3f}", "latency_p95_ms": f"{stats['latency_p95_ms']:.3f}",
             "model_time_p50_ms": f"{stats['model_time_p50_ms']:.3f}",
             "frames_received": str(stats["received"]), "frames_rejected": str(stats["rejected"]),
-            "frames_dropped": str(stats["dropped"]), "estimates_published": str(stats["published"]),
+            "frames_dropped": str(stats["dropped"]), "frames_late": str(stats["late"]),
+            "frames_duplicate": str(stats["duplicate"]), "estimates_published": str(stats["published"]),
             "processing_errors": str(stats["errors"]), "queue_depth": str(stats["queue_depth"]),
             "episodes_off_framing": str(stats["off_framing"]),
             "incompatible_publishers": str(stats["incompatible_publishers"]),

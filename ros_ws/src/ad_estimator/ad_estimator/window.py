@@ -25,11 +25,16 @@ once, with the frames before its first slot; a later frame finds it once per slo
 model's head sees it. The window keeps only the frames a later frame can still need as one of its
 earlier ones.
 
-Episodes. The window restarts (its next frame becomes frame 0) on a stamp gap larger than
-``gap_threshold`` seconds, on stamps going backwards, on a change of image size and on
-``reset()``. A frame with the same stamp as the previous one is a duplicate and ignored. The
-model expects frame 0 at the release of the object, so the window is anchored at the episode
-start; once the episode's last slot is settled, further frames are ignored until a restart.
+Episodes. The window restarts (its next frame becomes frame 0) on a stamp more than
+``gap_threshold`` seconds after the last frame's, on a stamp more than LATE_FRAMES frame intervals
+(or ``gap_threshold``, if shorter) before it (a stream or a bag starting over), on a change of
+image size and on ``reset()``. A frame less far back arrived out of order (reordered upstream):
+every slot it could fill is settled already or nearer to the later frame, so it is dropped and
+counted as late, and the episode goes on. (A stream that starts over after at most LATE_FRAMES
+frames cannot be told from reordering by stamps; its first frames are then taken as late.) A frame with the same stamp as the previous one is a duplicate and ignored (a camera that does
+not stamp its images gives nothing but duplicates). The model expects frame 0 at the release of the
+object, so the window is anchored at the episode start; once the episode's last slot is settled,
+further frames are ignored until a restart.
 
 Output policy. ``episode``: one estimate per episode when all frame_count slots are settled.
 ``anytime``: an estimate when min_frames slots are settled, then each time ``every_n`` more are,
@@ -50,6 +55,9 @@ DEFAULT_SLOT_TOLERANCE = 1.0  # frame intervals
 # Anytime policy: the bundled model's unseen RegL1 is 0.161 from 15 frames, 0.226 from 10 (README, temporal OOD).
 DEFAULT_MIN_FRAMES = 15
 DEFAULT_EVERY_N = 5  # anytime policy: then an estimate every 5 frames (0.125 s at 40 fps)
+# Reordering upstream (say, a segmentation pipeline with parallel workers) delivers a frame at most this many
+# frame intervals late; a stamp further back than that is a stream or bag starting over.
+LATE_FRAMES = 4
 # Stamps closer than this to a slot time count as at it (float stamps such as 1.5 + 3 * 0.025).
 SETTLE_EPSILON_NS = 1_000
 
@@ -90,7 +98,9 @@ class _Slot:
 @dataclass
 class WindowStats:
     frames: int = 0  # frames offered
-    ignored: int = 0  # duplicates, frames after the episode's end, frames between slots
+    ignored: int = 0  # frames after the episode's end, frames between slots
+    late: int = 0  # frames older than the last one by at most LATE_FRAMES intervals: out of order, dropped
+    duplicates: int = 0  # frames stamped like the previous one
     restarts: Counter = field(default_factory=Counter)  # by reason
 
 
@@ -118,6 +128,7 @@ class FrameWindow:
             raise ValueError("gap_threshold must exceed slot_tolerance * frame_interval")
         self.frame_count = frame_count
         self.gap_ns = int(round(gap_threshold * 1e9))
+        self.late_ns = min(self.gap_ns, LATE_FRAMES * self.interval_ns)
         self.tolerance_ns = int(round(slot_tolerance * self.interval_ns))
         self.policy = policy
         self.every_n = every_n
@@ -140,6 +151,11 @@ class FrameWindow:
         self._settled = 0  # slots 0.._settled-1 are final
         self._emitted = 0  # settled count at the last estimate (0 = none yet)
         self._done = False
+
+    @property
+    def last_stamp_ns(self) -> int | None:
+        """Stamp of the newest frame of the current episode (None before its first)."""
+        return self._last_ns
 
     @property
     def active(self) -> bool:
@@ -165,12 +181,15 @@ class FrameWindow:
             self.stats.restarts[RESTART_FIRST] += 1
         elif size != self._size:
             outputs = self._restart(RESTART_SIZE)
-        elif stamp_ns < self._last_ns:
+        elif self._last_ns - stamp_ns > self.late_ns:
             outputs = self._restart(RESTART_BACKWARDS)
+        elif stamp_ns < self._last_ns:
+            self.stats.late += 1
+            return outputs
         elif stamp_ns - self._last_ns > self.gap_ns:
             outputs = self._restart(RESTART_GAP)
         elif stamp_ns == self._last_ns:
-            self.stats.ignored += 1
+            self.stats.duplicates += 1
             return outputs
         if self._start_ns is None:
             self._start_ns, self._size = stamp_ns, size
