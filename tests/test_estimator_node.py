@@ -15,6 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rcl_interfaces.srv import SetParameters
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
@@ -266,6 +267,36 @@ def test_late_and_repeated_stamps_are_counted_warned_and_lose_no_episode(ros, mo
     values = {kv.key: kv.value for kv in arrays[-1].status[0].values}
     assert values["frames_late"] == "1" and values["frames_duplicate"] == "24"
     assert len(t.estimates) == 1
+
+
+def test_an_episode_that_ends_without_an_estimate_is_counted_and_warned(ros, model_paths):
+    """Frame 0 lost (a best-effort link, late discovery): 24 slots, no estimate under the episode
+    policy, and nothing once said so."""
+    t = start(ros, model_paths["streaming"], diagnostics_period=0.2)
+    arrays = []
+    t.client.create_subscription(DiagnosticArray, "/diagnostics", arrays.append, 10)
+    publish_episode(t, falling_masks(seed=12)[1:], 10**9 + DT)
+    publish_episode(t, falling_masks(seed=13), 3 * 10**9)  # the next episode ends the first
+    assert wait_for(lambda: len(t.estimates) == 1) and stamp_ns(t.estimates[0].oldest_stamp) == 3 * 10**9
+    assert wait_for(lambda: any(a.status[0].level == DiagnosticStatus.WARN and "1 episodes ended without an "
+                                "estimate" in a.status[0].message for a in arrays))
+    assert t.node.counters["without_estimate"] == 1
+    assert {kv.key: kv.value for kv in arrays[-1].status[0].values}["episodes_without_estimate"] == "1"
+
+
+def test_parameters_are_read_only_and_whole_numbers_fill_decimal_ones(ros, model_paths):
+    """`ros2 param set` once answered success and changed nothing; `idle_flush:=0` (documented: never)
+    was refused as an INTEGER for a DOUBLE."""
+    t = start(ros, model_paths["streaming"], idle_flush=0, slot_tolerance=1)
+    assert t.node.idle_flush == 0.0 and t.node.slot_tolerance == 1.0
+    client = t.client.create_client(SetParameters, "/ad_estimator/set_parameters")
+    assert client.wait_for_service(timeout_sec=5)
+    future = client.call_async(SetParameters.Request(parameters=[
+        Parameter("output_policy", value="anytime").to_parameter_msg()]))
+    assert wait_for(future.done)
+    (result,) = future.result().results
+    assert not result.successful and "read-only" in result.reason
+    assert t.node.get_parameter("output_policy").value == "episode"
 
 
 def test_a_best_effort_camera_against_a_reliable_subscription_is_reported(ros, model_paths):

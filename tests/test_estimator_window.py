@@ -368,3 +368,13 @@ def test_min_frames_matters_to_the_anytime_policy_only():
     with pytest.raises(ValueError, match="min_frames"):
         FrameWindow(0.025, 12, history=0, policy="anytime")
     assert FrameWindow(0.025, 12, history=0, policy="anytime", min_frames=12).min_frames == 12
+
+
+def test_an_episode_that_ends_without_an_estimate_is_counted():
+    window = FrameWindow(0.025, 25, history=1)
+    feed(window, [k * DT for k in range(1, 25)])  # frame 0 lost: 24 slots
+    assert window.stats.without_estimate == 0  # it could still go on
+    (out,) = feed(window, [10**9 + k * DT for k in range(25)])
+    assert window.stats.without_estimate == 1 and out.episode == 2
+    feed(window, [3 * 10**9])  # the second had its estimate
+    assert window.stats.without_estimate == 1

@@ -70,8 +70,10 @@ def test_recorded_bag_equals_generated_bag(ros_domain_id, tmp_path, instance_fil
 
 
 def test_pacing_and_clean_shutdown(rclpy_context, ros_domain_id, tmp_path):
+    from rcl_interfaces.srv import SetParameters
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
+    from rclpy.parameter import Parameter
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
@@ -96,6 +98,14 @@ def test_pacing_and_clean_shutdown(rclpy_context, ros_domain_id, tmp_path):
             while len(arrivals) < 40:  # into the second episode, across the 1.5 s stamp gap
                 assert time.monotonic() < deadline, (tmp_path / f"node{sig}.log").read_text()
                 executor.spin_once(timeout_sec=0.05)
+            if sig == signal.SIGTERM:  # parameters are read at start: a change at run time is refused, not ignored
+                client = listener.create_client(SetParameters, "/ad_sim/set_parameters")
+                assert client.wait_for_service(timeout_sec=10)
+                future = client.call_async(SetParameters.Request(parameters=[
+                    Parameter("real_time_factor", value=0.0).to_parameter_msg()]))
+                executor.spin_until_future_complete(future, timeout_sec=10)
+                (result,) = future.result().results
+                assert not result.successful and "read-only" in result.reason
             assert stop(node, sig) == 0
             log = (tmp_path / f"node{sig}.log").read_text()
             assert "Traceback" not in log and "episode 1: custom-sphere-jelly-0001" in log

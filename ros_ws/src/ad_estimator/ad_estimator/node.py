@@ -38,7 +38,7 @@ from std_srvs.srv import Trigger
 
 from ad_estimator.images import ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, TRAINED_EXTENT, Estimate, EstimatorModel, ModelError, object_extent
-from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
+from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, as_number, check_parameters, model_window
 from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
 from ad_sim.dds import non_ros_args
 
@@ -107,10 +107,11 @@ class EstimatorNode(Node):
 
         self.queue: queue.Queue = queue.Queue(maxsize=p["queue_size"])
         self.counters = dict(received=0, rejected=0, dropped=0, late=0, duplicate=0, processed=0, published=0,
-                             errors=0, off_framing=0, incompatible_publishers=0)
+                             errors=0, without_estimate=0, off_framing=0, incompatible_publishers=0)
         self.latencies: deque[float] = deque(maxlen=1000)  # arrival -> publish, seconds
         self.model_times: deque[float] = deque(maxlen=1000)
-        self._period_counts = dict(received=0, published=0, dropped=0, rejected=0, late=0, duplicate=0, errors=0)
+        self._period_counts = dict(received=0, published=0, dropped=0, rejected=0, late=0, duplicate=0, errors=0,
+                                   without_estimate=0)
         self._lock = threading.Lock()  # counters and queue clearing
         self._generation = 0  # bumped by ~/reset; the worker resets its window when it sees a new one
         self._window_generation = 0
@@ -144,9 +145,13 @@ class EstimatorNode(Node):
     # ------------------------------------------------------------------ set-up
 
     def _declare_parameters(self) -> dict:
+        """Read once, at start: read-only, so that a change at run time is refused, not accepted and ignored."""
         values = {}
         for name, (default, description) in PARAMETERS.items():
-            values[name] = self.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+            real = isinstance(default, float)  # takes an int too: idle_flush:=0
+            value = self.declare_parameter(name, default, ParameterDescriptor(
+                description=description, read_only=True, dynamic_typing=real)).value
+            values[name] = as_number(name, value) if real else value
         check_parameters(values)
         return values
 
@@ -211,9 +216,16 @@ class EstimatorNode(Node):
             encode_time[0] = time.perf_counter() - start
             return feature
 
-        episodes, last = self.window.episodes, self.window.last_stamp_ns
+        episodes, last, settled = self.window.episodes, self.window.last_stamp_ns, self.window.settled
         late, duplicates = self.window.stats.late, self.window.stats.duplicates
+        without_estimate = self.window.stats.without_estimate
         outputs = self.window.add(stamp, mask, encode)
+        if self.window.stats.without_estimate != without_estimate:
+            self._count("without_estimate")
+            self.warn("without_estimate", f"episode {episodes} ended with {settled} of the model's "
+                                          f"{self.info.frame_count} frame slots and no estimate: the episode policy "
+                                          "needs all of them (a frame lost at its start or end?); "
+                                          "output_policy:=anytime estimates from min_frames")
         if self.window.episodes != episodes:  # this frame started an episode
             self._check_framing(mask)
         elif self.window.stats.late != late:
@@ -368,6 +380,8 @@ class EstimatorNode(Node):
         problems = [f"{recent[k]} frames {k}" for k in ("dropped", "rejected", "late") if recent[k]]
         problems += [f"{recent['duplicate']} frames with a repeated stamp"] if recent["duplicate"] else []
         problems += [f"{recent['errors']} processing errors (see the log)"] if recent["errors"] else []
+        problems += ([f"{recent['without_estimate']} episodes ended without an estimate"]
+                     if recent["without_estimate"] else [])
         if self._unheard_publisher:
             problems.append(f"no frames; {stats['incompatible_publishers']} input publisher(s) with incompatible QoS seen")
         status.level = (DiagnosticStatus.ERROR if recent["errors"] else DiagnosticStatus.WARN if problems
@@ -383,6 +397,7 @@ class EstimatorNode(Node):
             "frames_dropped": str(stats["dropped"]), "frames_late": str(stats["late"]),
             "frames_duplicate": str(stats["duplicate"]), "estimates_published": str(stats["published"]),
             "processing_errors": str(stats["errors"]), "queue_depth": str(stats["queue_depth"]),
+            "episodes_without_estimate": str(stats["without_estimate"]),
             "episodes_off_framing": str(stats["off_framing"]),
             "incompatible_publishers": str(stats["incompatible_publishers"]),
             "window_restarts": str(sum(v for k, v in stats["window_restarts"].items() if k != "first")),

@@ -101,6 +101,7 @@ class WindowStats:
     ignored: int = 0  # frames after the episode's end, frames between slots
     late: int = 0  # frames older than the last one by at most LATE_FRAMES intervals: out of order, dropped
     duplicates: int = 0  # frames stamped like the previous one
+    without_estimate: int = 0  # episodes that ended (the next one started) without any estimate
     restarts: Counter = field(default_factory=Counter)  # by reason
 
 
@@ -153,6 +154,11 @@ class FrameWindow:
         self._done = False
 
     @property
+    def settled(self) -> int:
+        """Slots of the current episode that are final."""
+        return self._settled
+
+    @property
     def last_stamp_ns(self) -> int | None:
         """Stamp of the newest frame of the current episode (None before its first)."""
         return self._last_ns
@@ -164,6 +170,8 @@ class FrameWindow:
 
     def _restart(self, reason: str) -> list[WindowOutput]:
         outputs = self.flush() if self._start_ns is not None else []
+        if self._start_ns is not None and not self._emitted:
+            self.stats.without_estimate += 1
         self.stats.restarts[reason] += 1
         self.reset()
         return outputs

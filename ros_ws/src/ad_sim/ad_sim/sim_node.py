@@ -165,11 +165,13 @@ def parameter_help(parameters) -> str:
 
 
 def declare_parameters(node: Node, parameters) -> None:
-    """Declares (name, default, meaning) parameters. Those with a float default take ints as well
-    (`real_time_factor:=0`, `youngs_modulus:=1500000`): read them with `number`."""
+    """Declares (name, default, meaning) parameters, read-only: they are read once, at start, so a
+    change at run time (`ros2 param set`) is refused instead of accepted and ignored. Those with a
+    float default take ints as well (`real_time_factor:=0`, `youngs_modulus:=1500000`): read them
+    with `number`."""
     for name, default, meaning in parameters:
-        node.declare_parameter(name, default, ParameterDescriptor(description=meaning,
-                                                                  dynamic_typing=isinstance(default, float)))
+        node.declare_parameter(name, default, ParameterDescriptor(
+            description=meaning, read_only=True, dynamic_typing=isinstance(default, float)))
 
 
 def number(node: Node, name: str) -> float:
