@@ -403,9 +403,14 @@ def test_episodes_framed_unlike_training_are_counted(model_paths):
                     node.handle_frame(image_msg(disc(512, diameter), stamp + k * DT), time.perf_counter())
                 stats = node.statistics()
                 assert (stats["off_framing"], stats["errors"]) == (off, 0), diameter
-            # The clip service checks its clip the same way, and still answers.
+            # The clip service checks its clip the same way, still answers, and tells its caller.
             clip = [image_msg(disc(512, 0.8), stamp + 10**9 + k * DT) for k in range(3)]
-            assert node.estimate_clip(clip).material and node.statistics()["off_framing"] == 3
+            estimate, framing = node.estimate_clip(clip)
+            assert estimate.material and node.statistics()["off_framing"] == 3
+            assert framing.startswith("the object spans 80% of the image side; training objects spanned")
+            response = node.on_estimate(EstimateMaterial.Request(frames=clip), EstimateMaterial.Response())
+            assert response.success and response.message.startswith("partial: 3 of the model's 25 frame slots")
+            assert response.message.endswith("; " + framing)
         finally:
             node.destroy_node()
 

@@ -241,16 +241,18 @@ class EstimatorNode(Node):
         self._count("processed")
         return [self._publish(out, msg.header.frame_id, arrival, encode_time[0]) for out in outputs]
 
-    def _check_framing(self, frame) -> None:
-        """Warn when an episode starts with the object framed unlike any training clip."""
+    def _check_framing(self, frame) -> str | None:
+        """Warn when an episode starts with the object framed unlike any training clip; the warning, if any."""
         extent = object_extent(frame)
         low, high = TRAINED_EXTENT
-        if not low <= extent <= high:
-            self._count("off_framing")
-            self.warn("framing", f"an episode starts with the object spanning {extent:.0%} of the image side; "
-                                 f"training objects spanned {low:.0%} to {high:.0%} (the longer image side covering "
-                                 "about 1.4 m at the object): frame the camera alike, or expect larger errors "
-                                 "(docs/estimator.md, Images)")
+        if low <= extent <= high:
+            return None
+        self._count("off_framing")
+        warning = (f"the object spans {extent:.0%} of the image side; training objects spanned {low:.0%} to "
+                   f"{high:.0%} (the longer image side covering about 1.4 m at the object): frame the camera alike, "
+                   "or expect larger errors (docs/estimator.md, Images)")
+        self.warn("framing", f"an episode starts: {warning}")
+        return warning
 
     def _publish(self, out: WindowOutput, frame_id: str, arrival: float | None, encode_time: float) -> MaterialEstimate:
         estimate = self.model.predict(out.features, out.valid)
@@ -308,13 +310,14 @@ class EstimatorNode(Node):
     def on_estimate(self, request: EstimateMaterial.Request,
                     response: EstimateMaterial.Response) -> EstimateMaterial.Response:
         try:
-            response.estimate = self.estimate_clip(list(request.frames))
+            response.estimate, framing = self.estimate_clip(list(request.frames))
             response.success = True
+            notes = [framing] if framing else []  # the caller may never see the node's log
             if (used := response.estimate.frames_used) < self.info.frame_count:  # an estimate, but from less
-                response.message = (
-                    f"partial: {used} of the model's {self.info.frame_count} frame slots filled from "
-                    f"{len(request.frames)} frames; slots are {self.info.frame_interval * 1e3:g} ms apart from the "
-                    "first frame's stamp, and frames past the last slot are not used")
+                notes.insert(0, f"partial: {used} of the model's {self.info.frame_count} frame slots filled from "
+                                f"{len(request.frames)} frames; slots are {self.info.frame_interval * 1e3:g} ms apart "
+                                "from the first frame's stamp, and frames past the last slot are not used")
+            response.message = "; ".join(notes)
         except ValueError as exc:  # bad clip (ImageRejected is one)
             response.success = False
             response.message = str(exc)
@@ -324,8 +327,9 @@ class EstimatorNode(Node):
             self.get_logger().error(response.message)
         return response
 
-    def estimate_clip(self, frames: list[Image]) -> MaterialEstimate:
-        """One estimate for a clip (oldest first), through the same slots as the stream."""
+    def estimate_clip(self, frames: list[Image]) -> tuple[MaterialEstimate, str | None]:
+        """One estimate for a clip (oldest first), through the same slots as the stream, and the
+        framing warning if its object is framed unlike training."""
         if not frames:
             raise ValueError("empty clip: send at least one frame")
         if len(frames) > MAX_CLIP_FRAMES:
@@ -346,13 +350,13 @@ class EstimatorNode(Node):
                 masks.append(image_to_mask(frame, self.max_pixels, self.threshold))
             except ImageRejected as exc:
                 raise ValueError(f"frame {i}: {exc}") from exc
-        self._check_framing(masks[0])
+        framing = self._check_framing(masks[0])
         stamps = [stamp_to_ns(f.header.stamp.sec, f.header.stamp.nanosec) for f in frames]
         out = clip_output(stamps, masks, self.model.encode, self.info.frame_interval, self.info.frame_count,
                           slot_tolerance=self.slot_tolerance, history=self.info.previous_frames)
         estimate = self.model.predict(out.features, out.valid)
         return estimate_message(estimate, out, frames[-1].header.frame_id, self.info.model_id,
-                                time.perf_counter() - start)
+                                time.perf_counter() - start), framing
 
     # ------------------------------------------------------------------ diagnostics
 
