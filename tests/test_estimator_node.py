@@ -284,6 +284,17 @@ def test_an_episode_that_ends_without_an_estimate_is_counted_and_warned(ros, mod
     assert {kv.key: kv.value for kv in arrays[-1].status[0].values}["episodes_without_estimate"] == "1"
 
 
+def test_each_complete_estimate_is_logged_in_one_line(ros, model_paths, capfd):
+    """Without ros2 topic echo a running node looked idle: it logged nothing after start-up."""
+    t = start(ros, model_paths["streaming"])
+    publish_episode(t, falling_masks(seed=14), 10**9)
+    assert wait_for(lambda: len(t.estimates) == 1)
+    estimate = t.estimates[0]
+    (line,) = [line for line in capfd.readouterr().err.splitlines() if "episode 1:" in line]
+    assert f"episode 1: {estimate.material} p={max(estimate.class_probabilities):.2f}; " in line
+    assert line.startswith("[INFO]") and line.endswith(" ms)")
+
+
 def test_parameters_are_read_only_and_whole_numbers_fill_decimal_ones(ros, model_paths):
     """`ros2 param set` once answered success and changed nothing; `idle_flush:=0` (documented: never)
     was refused as an INTEGER for a DOUBLE."""

@@ -153,6 +153,12 @@ class Estimate:
     frames_used: int
     inference_time: float  # seconds spent in predict()
 
+    def describe(self) -> str:
+        """One line for logs: the family, its probability and its parameters (SI)."""
+        used = ", ".join(f"{name} {value:.4g}" for name, value in zip(self.parameter_names, self.parameters)
+                         if not math.isnan(value))
+        return f"{self.material} p={self.probabilities.max():.2f}; {used}"
+
 
 def _json(meta: dict, key: str, path: Path):
     try:
