@@ -1,6 +1,8 @@
 """`ad_estimator estimate`: the node's estimates for any bag, offline, without ground truth (no ROS runtime)."""
 import csv
 import json
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -224,6 +226,43 @@ def test_a_damaged_bag_points_at_recover(setup, tmp_path, capsys):
     assert [r["p_jelly"] for r in rows] == [r["p_jelly"] for r in read_csv(tmp_path / "i.csv")[:2]]
 
 
+def test_a_bag_with_nothing_readable_is_skipped_saying_so(setup, tmp_path, capsys):
+    """Cut inside its first chunk, a bag holds nothing that --recover can read: it is skipped with that
+    reason (not as a bag without the topic), the other bags' estimates are written, and the exit status is 1."""
+    model, good = setup
+    bag = write_test_bag(tmp_path / "cut")
+    (file,) = bag.glob("*.mcap")
+    file.write_bytes(file.read_bytes()[:300])
+    with pytest.warns(UserWarning) as caught:
+        assert run(model, good, bag, "--recover", "--out", tmp_path / "e.csv") == 1
+    assert [str(w.message) for w in caught] == [
+        f"bag skipped: nothing readable in {file}: it is truncated before its first complete chunk (300 bytes; was "
+        "the writer killed?)"]
+    assert f"1 bag(s) could not be read: {bag}" in capsys.readouterr().out
+    assert len(read_csv(tmp_path / "e.csv")) == 3
+    with pytest.warns(UserWarning, match="bag skipped: nothing readable"):
+        assert run(model, bag, "--recover", "--out", tmp_path / "n.csv") == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "0 frame(s) read" in err and "Pass --recover" not in err, err
+
+
+def test_an_unusable_metadata_yaml_does_not_block_the_mcap_beside_it(setup, tmp_path, capsys):
+    """An empty metadata.yaml: the bag is skipped with a one-line reason naming --recover; with it, the
+    .mcap file beside it gives the intact bag's estimates."""
+    model, good = setup
+    bag = tmp_path / "bag"
+    shutil.copytree(good, bag)
+    (bag / "metadata.yaml").write_text("")
+    with pytest.warns(UserWarning, match=rf"^bag skipped: {bag}/metadata\.yaml is unreadable \(empty\); pass --recover "
+                                         r"to read the 1 \.mcap file\(s\) beside it$"):
+        assert run(model, bag, "--out", tmp_path / "e.csv") == 1
+    assert "Pass --recover to read the undamaged part" in capsys.readouterr().err
+    with pytest.warns(UserWarning, match=r"metadata\.yaml is unreadable \(empty\); reading the 1 \.mcap file\(s\)"):
+        assert run(model, bag, "--recover", "--out", tmp_path / "r.csv") == 0
+    assert run(model, good, "--out", tmp_path / "g.csv") == 0
+    assert [r["p_jelly"] for r in read_csv(tmp_path / "r.csv")] == [r["p_jelly"] for r in read_csv(tmp_path / "g.csv")]
+
+
 def test_clear_errors_before_any_work(setup, tmp_path, capsys):
     model, bag = setup
     (tmp_path / "file").write_text("keep")
@@ -235,12 +274,18 @@ def test_clear_errors_before_any_work(setup, tmp_path, capsys):
         (["--gap-threshold", "inf"], "gap_threshold must be a finite number of seconds"),
         (["--slot-tolerance", "3"], "slot_tolerance"),
         (["--out", tmp_path], "is a folder; pass a .csv file name"),
-        (["--out", tmp_path / "file" / "e.csv"], "file is not a folder"),
+        # --out is a CSV file: the messages ask for one, not for a folder
+        (["--out", tmp_path / "file" / "e.csv"], f"--out {tmp_path / 'file' / 'e.csv'}: {tmp_path / 'file'} is not a "
+                                                 "folder; pass a .csv file in a folder"),
     ]
+    if Path("/proc/self").is_dir():  # where nothing can be created
+        cases.append((["--out", "/proc/e.csv"], "--out /proc/e.csv: cannot write in /proc ("))
     for extra, message in cases:
         assert run(model, bag, *extra) == 1
         err = capsys.readouterr().err
         assert err.startswith("estimate: ") and err.count("\n") == 1 and message in err, (extra, err)
+        assert "report" not in err and ("/proc" not in err or err.endswith(
+            "); pass a .csv file in a folder that you can write in\n")), err
     assert estimate.main(["--model", str(tmp_path / "missing.onnx"), str(bag)]) == 1
     assert "missing.onnx" in capsys.readouterr().err
     assert run(model, tmp_path / "no_bag") == 1

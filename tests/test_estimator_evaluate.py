@@ -2,6 +2,7 @@
 import json
 import math
 import re
+import shutil
 import warnings
 from collections import Counter
 
@@ -152,8 +153,51 @@ def test_truncated_recording_needs_recover_and_then_gives_its_complete_episodes(
         assert evaluate.main(["--model", str(model), "--bags", str(bag), "--quiet", "--recover",
                               "--out", str(tmp_path / "b")]) == 0
     assert warnings.formatwarning("x is truncated", UserWarning, "rosbag.py", 1) == "warning: x is truncated\n"
-    scored = json.loads((tmp_path / "b" / "predictions.json").read_text())["frames"]["25"]
-    assert 1 <= len(scored) < len(EPISODES)
+    predictions = json.loads((tmp_path / "b" / "predictions.json").read_text())
+    assert 1 <= len(predictions["frames"]["25"]) < len(EPISODES)
+    # What was lost is recorded with the results, as the other input problems are, not only warned about.
+    (problem,) = predictions["source_problems"]
+    assert problem.startswith(f"{file} is truncated: no MCAP footer") and "recovered" in problem, problem
+    assert "input problems: 1 problem(s) reading the bags' files" in capsys.readouterr().out
+    assert "Input problems: 1 problem(s) reading the bags' files" in (tmp_path / "b" / "report.md").read_text()
+
+
+def test_an_intact_bag_records_no_source_problem(setup, tmp_path, capsys):
+    model, bag = setup
+    assert run_main(model, bag, tmp_path / "out") == 0
+    assert json.loads((tmp_path / "out" / "predictions.json").read_text())["source_problems"] == []
+    assert "input problems" not in capsys.readouterr().out
+    assert "Input problems" not in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_a_bag_with_nothing_readable_says_so(setup, tmp_path, capsys):
+    """Cut inside its first chunk: --recover reads nothing, and the one-line error says so instead of
+    blaming the topic."""
+    model, _ = setup
+    bag = write_test_bag(tmp_path / "cut")
+    (file,) = bag.glob("*.mcap")
+    file.write_bytes(file.read_bytes()[:300])
+    assert run_main(model, bag, tmp_path / "out", "--recover") == 1
+    assert capsys.readouterr().err == (f"evaluate: nothing readable in {file}: it is truncated before its first "
+                                       "complete chunk (300 bytes; was the writer killed?)\n")
+
+
+def test_an_unusable_metadata_yaml_needs_recover_and_is_recorded(setup, tmp_path, capsys):
+    """A metadata.yaml that is not YAML: one line naming --recover; with it, the .mcap beside it is scored
+    in full, and the problem is recorded with the results."""
+    model, good = setup
+    bag = tmp_path / "bag"
+    shutil.copytree(good, bag)
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed\n  : - x: {")
+    assert run_main(model, bag, tmp_path / "a") == 1
+    assert capsys.readouterr().err == (f"evaluate: {bag}/metadata.yaml is unreadable (not YAML: expected ',' or ']', "
+                                       "but got ':' at line 2); pass --recover to read the 1 .mcap file(s) beside it\n")
+    with pytest.warns(UserWarning, match="metadata.yaml is unreadable"):
+        assert run_main(model, bag, tmp_path / "b", "--recover") == 0
+    predictions = json.loads((tmp_path / "b" / "predictions.json").read_text())
+    assert len(predictions["frames"]["25"]) == len(EPISODES)
+    assert predictions["source_problems"] == [f"{bag}/metadata.yaml is unreadable (not YAML: expected ',' or ']', but "
+                                              "got ':' at line 2); reading the 1 .mcap file(s) beside it"]
 
 
 # --------------------------------------------------------------------------- bad input

@@ -1,5 +1,6 @@
 """replay (bag -> topics with recorded timing and QoS) and the live path against the offline path."""
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -102,6 +103,33 @@ def test_replay_truncated_recording_with_recover(tmp_path, ros_domain_id):
     assert proc.returncode == 0 and "warning: " in out and "truncated" in out, out
     published = int(out.split("replay: published ")[1].split()[0])
     assert 0 < published < 3 * 26, out  # some, not all, of 3 episodes x (instance + 25 masks)
+
+
+def test_replay_of_a_bag_with_nothing_readable_fails_saying_so(tmp_path, ros_domain_id):
+    """Cut inside its first chunk: --recover plays nothing, which is an error saying why (not "published 0")."""
+    bag = write_test_bag(tmp_path / "cut")
+    (file,) = bag.glob("*.mcap")
+    file.write_bytes(file.read_bytes()[:300])
+    proc = run("ad_estimator.replay", str(bag), "--quiet", "--delay", "0", "--recover")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and out == (f"replay: nothing readable in {file}: it is truncated before its first "
+                                            "complete chunk (300 bytes; was the writer killed?)\n"), out
+
+
+def test_replay_of_a_bag_with_an_unusable_metadata_yaml(test_bag, tmp_path, ros_domain_id):
+    """An empty metadata.yaml: one line naming --recover; with it, the .mcap beside it plays in full."""
+    bag = tmp_path / "bag"
+    shutil.copytree(test_bag, bag)
+    (bag / "metadata.yaml").write_text("")
+    proc = run("ad_estimator.replay", str(bag), "--quiet", "--delay", "0")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and out == (f"replay: {bag}/metadata.yaml is unreadable (empty); pass --recover to "
+                                            "read the 1 .mcap file(s) beside it\n"), out
+    proc = run("ad_estimator.replay", str(bag), "--quiet", "--delay", "0", "--rate", "100", "--recover")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and out.splitlines()[0] == (f"warning: {bag}/metadata.yaml is unreadable (empty); "
+                                                            "reading the 1 .mcap file(s) beside it"), out
+    assert f"published 78 messages from {bag}" in out, out
 
 
 @pytest.mark.parametrize("options, message", [

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -201,8 +202,11 @@ def test_truncated_file_is_an_error_and_recoverable(tmp_path):
     file = path / "trunc_0.mcap"
     data = file.read_bytes()
     file.write_bytes(data[: len(data) // 2])
-    with pytest.raises(BagError, match=r"trunc_0\.mcap is truncated"):
+    with pytest.raises(BagError, match=r"trunc_0\.mcap is truncated") as refused:
         list(BagReader(path))
+    # The message names the flag of the command lines; the Python equivalent is a note (shown in tracebacks).
+    assert str(refused.value).endswith("Read every complete chunk of it with --recover"), refused.value
+    assert refused.value.__notes__ == ["In Python: BagReader(path, recover=True) reads what is readable."]
     reader = BagReader(path, recover=True)
     with pytest.warns(UserWarning) as caught:
         topics = reader.topics()  # scans the summary-less file (replay asks first) ...
@@ -219,14 +223,103 @@ def test_truncated_file_is_an_error_and_recoverable(tmp_path):
 
 
 def test_empty_or_magic_only_file_is_truncated_not_foreign(tmp_path):
-    """A writer killed as it created a file leaves nothing or part of the magic: truncated, not foreign."""
+    """A writer killed as it created a file leaves nothing or part of the magic: truncated, not foreign.
+    Alone, it leaves nothing to recover, which is an error saying so; beside a readable file, a warning."""
+    written = write_fabricated_bag(tmp_path / "split", episodes=1)
     for name, content, what in (("empty", b"", "is empty"), ("cut", rosbag.MCAP_MAGIC[:4], "is truncated inside the MCAP magic (4 bytes")):
         file = tmp_path / f"{name}.mcap"
         file.write_bytes(content)
         with pytest.raises(BagError, match=rf"{name}\.mcap {re.escape(what)}.*--recover"):
             list(BagReader(file))
-        with pytest.warns(UserWarning, match=rf"{name}\.mcap {re.escape(what)}.*: recovered 0 messages$"):
-            assert list(BagReader(file, recover=True)) == []
+        for read in (list, BagReader.topics):
+            with pytest.raises(rosbag.BagUnreadable, match=rf"^nothing readable in {re.escape(str(file))}: it {re.escape(what)}"):
+                read(BagReader(file, recover=True))
+        (tmp_path / "split" / "split_1.mcap").write_bytes(content)  # the next file of a split bag
+        with pytest.warns(UserWarning, match=r"reading \.mcap files not named in metadata\.yaml: split_1\.mcap"), \
+                pytest.warns(UserWarning, match=rf"split_1\.mcap {re.escape(what)}.*: recovered 0 messages$"):
+            assert len(list(BagReader(tmp_path / "split", recover=True))) == len(written)
+
+
+def test_damage_before_the_first_complete_chunk_leaves_nothing_to_recover(tmp_path, capsys):
+    """A file cut inside its first chunk, or whose every chunk is corrupt: recovering reads no message,
+    which is said as such (not as a bag without topics), and `repair` fails without leaving a bag."""
+    write_fabricated_bag(tmp_path / "cut", episodes=1)
+    file = tmp_path / "cut" / "cut_0.mcap"
+    file.write_bytes(file.read_bytes()[:300])
+    message = rf"^nothing readable in {re.escape(str(file))}: it is truncated before its first complete chunk \(300 bytes"
+    for read in (list, BagReader.topics):
+        with pytest.raises(rosbag.BagUnreadable, match=message):
+            read(BagReader(tmp_path / "cut", recover=True))
+    write_fabricated_bag(tmp_path / "corrupt", episodes=1, chunk_size=50_000)
+    file = tmp_path / "corrupt" / "corrupt_0.mcap"
+    with open(file, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    data = bytearray(file.read_bytes())
+    for chunk in chunks:
+        middle = chunk.chunk_start_offset + chunk.chunk_length // 2
+        data[middle : middle + 64] = bytes(64)
+    file.write_bytes(bytes(data))
+    reader = BagReader(tmp_path / "corrupt", recover=True)
+    assert reader.topics()  # the summary is intact: only reading finds that no chunk is
+    with pytest.warns(UserWarning, match="corrupt record"), pytest.raises(
+            rosbag.BagUnreadable, match=rf"^nothing readable in {re.escape(str(file))}: it is damaged before its first"):
+        list(reader)
+    for bag in ("cut", "corrupt"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            assert rosbag.main(["repair", str(tmp_path / bag), "--out", str(tmp_path / f"fixed_{bag}")]) == 1
+        assert capsys.readouterr().err.startswith(f"error: nothing readable in {tmp_path / bag}")
+        assert not (tmp_path / f"fixed_{bag}").exists()
+
+
+@pytest.mark.parametrize("content, reason", [
+    ("rosbag2_bagfile_information: [unclosed\n  : - x: {", "not YAML: expected ',' or ']', but got ':' at line 2"),
+    ("", "empty"),
+    ("- a\n- b\n", "a YAML list, not rosbag2 metadata"),
+    ("rosbag2_bagfile_information:\n  relative_file_paths: 7\n", "relative_file_paths is not a list of file names"),
+    ("rosbag2_bagfile_information:\n  relative_file_paths: [unusable_0.mcap]\n  topics_with_message_count: [1]\n",
+     "topics_with_message_count is not a list of topics with a name, type and message_count"),
+    (None, None),  # valid, but naming a file that is not there
+], ids=["not_yaml", "empty", "list", "bad_files", "bad_topics", "missing_file"])
+def test_an_unusable_metadata_yaml_needs_recover_then_the_mcap_files_are_read(bag, tmp_path, capsys, content, reason):
+    """A metadata.yaml that cannot be used does not block the intact .mcap beside it: a one-line error
+    naming --recover; with it, or in `repair` (whose job this is), a one-line warning, then the .mcap
+    files are read, as when metadata.yaml is missing."""
+    source, written = bag
+    path = tmp_path / "unusable"
+    path.mkdir()
+    shutil.copy(source / "two_0.mcap", path / "unusable_0.mcap")
+    metadata = path / "metadata.yaml"
+    if content is None:
+        metadata.write_text((source / "metadata.yaml").read_text().replace("two_0.mcap", "gone_0.mcap"))
+        problem = f"{metadata} names files that are missing: gone_0.mcap"
+    else:
+        metadata.write_text(content)
+        problem = f"{metadata} is unreadable ({reason})"
+    with pytest.raises(rosbag.BagDamaged) as refused:
+        BagReader(path)
+    assert str(refused.value) == f"{problem}; pass --recover to read the 1 .mcap file(s) beside it"
+    assert "recover=True" in refused.value.__notes__[0]  # for Python callers, shown with a traceback
+    with pytest.warns(UserWarning) as caught:
+        reader = BagReader(path, recover=True)
+    assert [str(w.message) for w in caught] == reader.problems == [f"{problem}; reading the 1 .mcap file(s) beside it"]
+    assert [(t, s) for t, s, _ in reader] == [(t, s) for t, s, _ in written]
+    with pytest.warns(UserWarning, match=re.escape(problem)):
+        assert rosbag.main(["repair", str(path), "--out", str(tmp_path / "fixed")]) == 0
+    assert capsys.readouterr().out == f"{tmp_path / 'fixed'}: {len(written)} messages written\n"
+    assert len(list(BagReader(tmp_path / "fixed"))) == len(written)
+
+
+def test_repair_to_an_out_that_cannot_be_created_is_one_line(bag, tmp_path, capsys):
+    source, _ = bag
+    (tmp_path / "file").write_text("keep")
+    assert rosbag.main(["repair", str(source), "--out", str(tmp_path / "file" / "fixed")]) == 1
+    assert capsys.readouterr().err == f"error: cannot create bag output {tmp_path / 'file' / 'fixed'}: Not a directory\n"
+    assert (tmp_path / "file").read_text() == "keep"
+    if Path("/proc/self").is_dir():  # a virtual file system where nothing can be created
+        assert rosbag.main(["repair", str(source), "--out", "/proc/ad_sim_repair_test"]) == 1
+        err = capsys.readouterr().err
+        assert re.fullmatch(r"error: cannot create bag output /proc/ad_sim_repair_test: \S.*\n", err), err
 
 
 def test_corrupt_chunk_names_file_and_offset(tmp_path):

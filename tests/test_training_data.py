@@ -146,6 +146,20 @@ def test_a_cache_of_a_truncated_bag_warns_on_every_use(tmp_path, caplog, monkeyp
         assert any(f"episode {episodes[2].instance.episode_id} is incomplete" in m for m in hits)
 
 
+def test_a_bag_with_nothing_readable_is_left_out_saying_why(tmp_path, caplog):
+    """A bag cut inside its first chunk holds nothing to recover: the others are cached, and the
+    dataset's problems say why that one is left out."""
+    write_synthetic_bag(tmp_path / "bags" / "good", 2, views=1, seed=3)
+    cut = write_synthetic_bag(tmp_path / "bags" / "cut", 2, views=1, seed=3, first=2)
+    (file,) = cut.glob("*.mcap")
+    file.write_bytes(file.read_bytes()[:300])
+    ds = data.load_dataset(tmp_path / "bags", tmp_path / "cache", progress=False)
+    assert len(ds) == 2
+    assert ds.problems == [f"nothing readable in {file}: it is truncated before its first complete chunk (300 bytes; "
+                           "was the writer killed?)", f"{cut} holds no complete episode; left out"]
+    assert ds.problems[0] in caplog.messages
+
+
 def test_missing_bags_error_says_what_to_do(tmp_path):
     with pytest.raises(FileNotFoundError, match="ad_sim.generate"):
         data.find_bags(tmp_path)

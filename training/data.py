@@ -44,7 +44,7 @@ from ad_sim.materials import (
 )
 from ad_sim.messages import POINT_FIELDS, instance_topic, particles_topic
 from ad_sim.render import MASK_SIZE
-from ad_sim.rosbag import BagError, BagReader, group_episodes
+from ad_sim.rosbag import BagError, BagReader, BagUnreadable, group_episodes
 
 log = logging.getLogger(__name__)
 
@@ -321,7 +321,11 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True)
             for problem in source_problems:
                 log.warning("cached from an incomplete bag: %s", problem)
         else:
-            episodes, source_problems = read_bag(path)
+            try:
+                episodes, source_problems = read_bag(path)
+            except BagUnreadable as exc:  # damaged before its first complete chunk: left out, saying why
+                episodes, source_problems = [], [str(exc)]
+                log.warning("%s", exc)
             if not episodes:
                 problems += [*source_problems, f"{path} holds no complete episode; left out"]
                 log.warning("%s", problems[-1])

@@ -114,12 +114,8 @@ def csv_row(row: Row) -> list:
 
 
 def summary_line(row: Row) -> str:
-    est = row.estimate
-    used = ", ".join(f"{name} {value:.4g}" for name, value in zip(est.parameter_names, est.parameters)
-                     if not math.isnan(value))
     return (f"{Path(row.bag).name} episode {row.output.episode} ({row.output.frames_used} frames"
-            f"{'' if row.output.complete else ', partial'}): {est.material} "
-            f"p={est.probabilities.max():.2f}; {used}")
+            f"{'' if row.output.complete else ', partial'}): {row.estimate.describe()}")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -161,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         out = args.out or Path("reports") / "estimate" / f"{model.model_id}.csv"
         if out.is_dir():
             raise ValueError(f"--out {out} is a folder; pass a .csv file name")
-        check_out(out.parent)
+        check_out(out, file="a .csv file")
         bags = find_bags(args.bags)
     except (ModelError, BagError, ValueError) as exc:
         print(f"estimate: {exc}", file=sys.stderr)

@@ -60,12 +60,16 @@ class Evaluation:
     """What evaluate() found: the scored predictions per K, and what it had to leave out."""
 
     predictions: dict[int, list[EpisodePrediction]]
+    # the bag readers' warnings: damage read past with --recover, an unusable or missing metadata.yaml
+    source_problems: list[str] = field(default_factory=list)
     skipped_frames: list[dict] = field(default_factory=list)  # bag, episode_id, stamp_ns, reason
     left_out: dict[int, list[dict]] = field(default_factory=dict)  # per K: bag, episode_id, reason
 
     def problems(self) -> str:
         """One line on what was skipped or left out ('' when nothing was)."""
         parts = []
+        if self.source_problems:
+            parts.append(f"{len(self.source_problems)} problem(s) reading the bags' files")
         if self.skipped_frames:
             parts.append(f"{len(self.skipped_frames)} mask frame(s) skipped, as the node rejects them")
         if rows := [f"K = {k}: {len(v)}" for k, v in self.left_out.items() if v]:
@@ -101,15 +105,19 @@ def image_topics(topics: dict[str, str]) -> list[str]:
     return sorted(t for t, kind in topics.items() if kind == IMAGE_TYPE)
 
 
-def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = False):
+def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = False,
+                   problems: list[str] | None = None):
     """(instance, [(stamp_ns, Image)]) per episode of the bag, in order. `recover`: read a truncated
-    or damaged file (a killed recorder) up to its last complete chunk, with a warning."""
+    or damaged file (a killed recorder) up to its last complete chunk, with a warning. `problems`,
+    if given, gets the reader's warnings (BagReader.problems) once the bag is read."""
     reader = BagReader(bag, topics=[INSTANCE_TOPIC, mask_topic], recover=recover)
     check_image_topic(reader.topics(), mask_topic, bag)
     for episode in group_episodes(reader, INSTANCE_TOPIC):
         frames = [(stamp_to_ns(m.header.stamp.sec, m.header.stamp.nanosec), m)
                   for _, m in episode.messages.get(mask_topic, [])]
         yield episode.instance, frames
+    if problems is not None:
+        problems += reader.problems
 
 
 def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed: int,
@@ -166,7 +174,7 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
     result = Evaluation({k: [] for k in frame_counts}, left_out={k: [] for k in frame_counts})
     with tqdm(desc="episodes", unit="ep", disable=not progress, file=sys.stderr) as bar:
         for bag in bags:
-            for instance, frames in episode_frames(bag, mask_topic, recover):
+            for instance, frames in episode_frames(bag, mask_topic, recover, result.source_problems):
                 score_episode(model, bag, instance, frames, frame_counts, result)
                 bar.update()
     return result
@@ -216,15 +224,19 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
             result.predictions[k].append(prediction)
 
 
-def check_out(out: Path) -> None:
-    """The report folder can be made and written, checked before any work (creating nothing yet)."""
-    base = next(p for p in (out, *out.parents) if p.exists())  # the folder that would hold it
+def check_out(out: Path, file: str = "") -> None:
+    """--out can be made and written, checked before any work (creating nothing yet): the report
+    folder `out`, or with `file` (what it is: "a .csv file") the file `out`, in its folder."""
+    folder = out.parent if file else out
+    wanted = f"{file} in a folder" if file else "a folder for the report"
+    base = next(p for p in (folder, *folder.parents) if p.exists())  # the folder that would hold it
     if not base.is_dir():
-        raise ValueError(f"--out {out}: {base} is not a folder; pass a folder for the report")
+        raise ValueError(f"--out {out}: {base} is not a folder; pass {wanted}")
     try:
         tempfile.TemporaryFile(dir=base).close()
     except OSError as exc:
-        raise ValueError(f"--out {out}: cannot write in {base} ({exc.strerror}); pass a writable folder") from exc
+        raise ValueError(f"--out {out}: cannot write in {base} ({exc.strerror}); pass {wanted} "
+                         "that you can write in") from exc
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -292,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
             {"model_id": model.model_id, "model_path": str(args.model), "topic": args.topic,
              "parameter_names": list(model.info.parameter_names),
              "frames": {str(k): [vars(p) for p in v] for k, v in results.items()},
-             "skipped_frames": evaluation.skipped_frames,
+             "source_problems": evaluation.source_problems, "skipped_frames": evaluation.skipped_frames,
              "left_out": {str(k): v for k, v in evaluation.left_out.items()}}, indent=1))
     except OSError as exc:
         print(f"evaluate: cannot write the report to {out} ({exc}); free space there or pass another --out",

@@ -105,19 +105,19 @@ class Replayer:
     def run(self, rate: float, progress: bool = True) -> int:
         """Publish every message at first_wall + (log_time - first_log) / rate; returns the count."""
         start_wall = start_log = None
-        bar = tqdm(total=self.total, unit="msg", desc="replay", disable=not progress, file=sys.stderr)
-        for topic, log_time, data in self.reader:
-            if start_log is None:
-                start_wall, start_log = time.monotonic(), log_time
-            delay = start_wall + (log_time - start_log) / 1e9 / rate - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            if not rclpy.ok(context=self.node.context):
-                break
-            self.publishers[topic].publish(bytes(data))
-            self.published += 1
-            bar.update()
-        bar.close()
+        # closed on an error too (a bag with nothing readable fails once read), so the error gets a line of its own
+        with tqdm(total=self.total, unit="msg", desc="replay", disable=not progress, file=sys.stderr) as bar:
+            for topic, log_time, data in self.reader:
+                if start_log is None:
+                    start_wall, start_log = time.monotonic(), log_time
+                delay = start_wall + (log_time - start_log) / 1e9 / rate - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                if not rclpy.ok(context=self.node.context):
+                    break
+                self.publishers[topic].publish(bytes(data))
+                self.published += 1
+                bar.update()
         return self.published
 
     def wait_for_acknowledgments(self, timeout: float) -> bool:

@@ -23,6 +23,7 @@ import json
 import mmap
 import os
 import re
+import shutil
 import struct
 import sys
 import warnings
@@ -68,10 +69,21 @@ class BagError(ValueError):
 
 
 class BagDamaged(BagError):
-    """Part of a bag file is damaged or missing (a killed writer, a corrupt copy); recover=True reads the rest."""
+    """Part of a bag is damaged or missing (a killed writer, a corrupt copy, an unusable metadata.yaml);
+    recover=True reads the rest. The message names the command-line flag, --recover, as every tool
+    that reads bags offers it; a note (shown with a traceback) names the Python equivalent."""
+
+    def __init__(self, message: str):
+        super().__init__(message)
+        self.add_note("In Python: BagReader(path, recover=True) reads what is readable.")
 
 
-RECOVER_ADVICE = "pass --recover (BagReader(recover=True)) to read what is readable"
+class BagUnreadable(BagError):
+    """Recovering found no message at all: every file of the bag is damaged before its first
+    complete chunk (or empty)."""
+
+
+RECOVER_ADVICE = "pass --recover to read what is readable"
 
 
 # --------------------------------------------------------------------------- schemas
@@ -492,6 +504,9 @@ class _FileScan:
     channels: dict[int, Channel] = field(default_factory=dict)
     decoders: dict[int, Any] = field(default_factory=dict)  # by channel id, built on first use
     truncated: str = ""  # what a killed writer left, when recovering: said once the file is scanned
+    damage: str = ""  # when recovering: how the file is damaged, said if nothing is readable in the bag
+    messages: int | None = None  # messages read, once the file's records are scanned
+    recovered: str = ""  # when recovering a truncated file: what was recovered and lost, said after the scan
 
 
 _RECORD_TYPES = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel}
@@ -511,6 +526,39 @@ def _mapped(path: Path):
         raise BagError(f"cannot read {path}: {exc}") from exc
 
 
+def read_metadata(path: Path) -> dict:
+    """The rosbag2_bagfile_information of a metadata.yaml, checked for what readers of it use (the
+    file list; each topic's name, type and count); ValueError with a short reason if it is unusable."""
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise ValueError("not text") from None
+    except OSError as exc:
+        raise ValueError(f"cannot read it: {exc.strerror or exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:  # the parser's own message runs over several lines
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        mark = getattr(exc, "problem_mark", None)
+        raise ValueError(f"not YAML: {problem}{f' at line {mark.line + 1}' if mark else ''}") from None
+    if data is None:
+        raise ValueError("empty")
+    info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
+    if not isinstance(info, dict):
+        raise ValueError("no rosbag2_bagfile_information mapping" if isinstance(data, dict) else
+                         f"a YAML {'list' if isinstance(data, list) else 'scalar'}, not rosbag2 metadata")
+    files = info.get("relative_file_paths")
+    if not isinstance(files, list) or not all(isinstance(f, str) and f for f in files):
+        raise ValueError("relative_file_paths is not a list of file names")
+    topics = info.get("topics_with_message_count", [])
+    if not isinstance(topics, list) or not all(
+            isinstance(t, dict) and isinstance(t.get("topic_metadata"), dict)
+            and isinstance(t["topic_metadata"].get("name"), str) and isinstance(t["topic_metadata"].get("type"), str)
+            and isinstance(t.get("message_count"), int) for t in topics):
+        raise ValueError("topics_with_message_count is not a list of topics with a name, type and message_count")
+    return info
+
+
 def _natural_key(path: Path) -> list:
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
 
@@ -521,7 +569,10 @@ class BagReader:
 
     recover=True reads what a killed writer left: files without a summary are read up to
     the last complete chunk, and corrupt chunks are skipped, each with a warning that says
-    what was recovered or lost. raw=True yields the CDR bytes instead of decoded messages.
+    what was recovered or lost; a metadata.yaml that is unusable (not rosbag2 metadata, or naming
+    missing files) is passed over with a warning, and the .mcap files beside it are read, as when
+    it is missing. If that leaves no message at all, reading (or topics()) raises BagUnreadable.
+    raw=True yields the CDR bytes instead of decoded messages.
     `problems` lists the reader's warnings, each once however often the files are scanned.
     """
 
@@ -551,36 +602,49 @@ class BagReader:
             return [self.path]
         found = sorted(self.path.glob("*.mcap"), key=_natural_key)
         metadata_path = self.path / METADATA_FILE
-        if metadata_path.is_file():
-            try:
-                self.metadata = yaml.safe_load(metadata_path.read_text())["rosbag2_bagfile_information"]
-                listed = [self.path / p for p in self.metadata["relative_file_paths"]]
-            except (yaml.YAMLError, KeyError, TypeError) as exc:
-                raise BagError(f"{metadata_path} is not rosbag2 metadata: {exc}") from exc
-            missing = [str(p) for p in listed if not p.is_file()]
-            if missing:
-                raise BagError(f"bag {self.path}: files named in metadata.yaml are missing: {', '.join(missing)}")
-            extra = [p for p in found if p not in listed]
-            if extra:
-                self._warn(f"bag {self.path}: reading .mcap files not named in metadata.yaml: {extra}")
-            files = listed + extra
-        else:
+        files = found
+        if not metadata_path.exists():
             if found:
                 self._warn(
                     f"bag {self.path} has no metadata.yaml (was the writer killed?); "
                     f"reading the {len(found)} .mcap file(s) found"
                 )
-            files = found
+        else:
+            try:
+                metadata = read_metadata(metadata_path)
+            except ValueError as exc:
+                self._unusable_metadata(f"{metadata_path} is unreadable ({exc})", found)
+            else:
+                # Kept even when files are missing: their topics' types and QoS are still right.
+                self.metadata = metadata
+                listed = [self.path / p for p in metadata["relative_file_paths"]]
+                if missing := [p.name for p in listed if not p.is_file()]:
+                    self._unusable_metadata(f"{metadata_path} names files that are missing: {', '.join(missing)}",
+                                            found)
+                else:
+                    if extra := [p for p in found if p not in listed]:
+                        self._warn(f"bag {self.path}: reading .mcap files not named in metadata.yaml: "
+                                   f"{', '.join(p.name for p in extra)}")
+                    files = listed + extra
         if not files:
             raise BagError(f"bag folder {self.path} holds no .mcap file")
         return files
 
+    def _unusable_metadata(self, problem: str, found: list[Path]) -> None:
+        """metadata.yaml cannot be used: an error naming --recover, or when recovering a warning,
+        and the .mcap files `found` beside it are read, as when it is missing."""
+        if not found:
+            raise BagError(f"{problem}, and no .mcap file lies beside it")
+        if not self.recover:
+            raise BagDamaged(f"{problem}; pass --recover to read the {len(found)} .mcap file(s) beside it")
+        self._warn(f"{problem}; reading the {len(found)} .mcap file(s) beside it")
+
     def topics(self) -> dict[str, str]:
         """topic -> message type over all files (from the summaries; files without one are scanned)."""
         result = {}
-        for path in self.files:
-            scan = _FileScan(path)
-            with _mapped(path) as data:
+        scans = [_FileScan(path) for path in self.files]
+        for scan in scans:
+            with _mapped(scan.path) as data:
                 summary = self._read_summary(scan, data)
                 if summary is None or not scan.channels:
                     for _ in self._scan_records(scan, data, None):
@@ -588,17 +652,32 @@ class BagReader:
             for channel in scan.channels.values():
                 schema = scan.schemas.get(channel.schema_id)
                 result[channel.topic] = schema.name if schema else ""
+        self._scanned(scans)
         return result
 
     def __iter__(self) -> Iterator[BagMessage]:
-        streams = [self._iter_file(i, path) for i, path in enumerate(self.files)]
+        scans = [_FileScan(path) for path in self.files]
+        streams = [self._iter_file(i, scan) for i, scan in enumerate(scans)]
         for log_time, _, topic, message in heapq.merge(*streams, key=lambda item: (item[0], item[1])):
             yield BagMessage(topic, log_time, message)
+        self._scanned(scans)
+
+    def _scanned(self, scans: list[_FileScan]) -> None:
+        """After a pass over the files: BagUnreadable if recovering found no message in any of them
+        and damage in some (files only read through their summary count as readable); otherwise
+        the warnings of what was recovered from each truncated file."""
+        if all(scan.messages == 0 for scan in scans) and (damaged := [scan for scan in scans if scan.damage]):
+            if len(scans) == 1:
+                raise BagUnreadable(f"nothing readable in {scans[0].path}: it {scans[0].damage}")
+            raise BagUnreadable(f"nothing readable in {self.path}: "
+                                + "; ".join(f"{scan.path} {scan.damage}" for scan in damaged))
+        for scan in scans:
+            if scan.recovered:
+                self._warn(scan.recovered)
 
     # -- one file
 
-    def _iter_file(self, file_index: int, path: Path) -> Iterator[tuple[int, tuple[int, int], str, Any]]:
-        scan = _FileScan(path)
+    def _iter_file(self, file_index: int, scan: _FileScan) -> Iterator[tuple[int, tuple[int, int], str, Any]]:
         for log_time, order, channel, data in self._scan_file(scan):
             if self.topic_filter is not None and channel.topic not in self.topic_filter:
                 continue
@@ -632,19 +711,22 @@ class BagReader:
             self.problems.append(message)
             warnings.warn(message, stacklevel=3)
 
-    def _problem(self, message: str, recovery: str) -> None:
+    def _problem(self, scan: _FileScan, message: str, recovery: str) -> None:
         """A damaged part of a file: an error saying what --recover would do, or when recovering a
         warning ending in what was done about it."""
         if not self.recover:
             raise BagDamaged(f"{message}. To skip the damaged part and report it, {RECOVER_ADVICE}")
         self._warn(f"{message}; {recovery}")
+        scan.damage = scan.damage or "is damaged before its first complete chunk"
 
-    def _truncated(self, scan: _FileScan, what: str, to_recover: str) -> None:
+    def _truncated(self, scan: _FileScan, what: str, to_recover: str, damage: str) -> None:
         """A file a killed writer left (`what`: "is empty (...)"): an error saying what --recover
-        would do, or when recovering noted for the warning after its scan (what was recovered)."""
+        would do, or when recovering noted for the warning after its scan (what was recovered),
+        and `damage` for the error if nothing is readable."""
         if not self.recover:
-            raise BagDamaged(f"{scan.path} {what}. {to_recover} with --recover (BagReader(recover=True))")
+            raise BagDamaged(f"{scan.path} {what}. {to_recover} with --recover")
         scan.truncated = what
+        scan.damage = damage
 
     def _read_summary(self, scan: _FileScan, data) -> list[ChunkIndex] | None:
         """Chunk indexes (and the schemas and channels into `scan`) from the file's summary.
@@ -657,14 +739,15 @@ class BagReader:
             if not MCAP_MAGIC.startswith(start):
                 raise BagError(f"{scan.path} is not an MCAP file (starts with {start!r})")
             # Nothing or part of the magic: the writer was killed as it created the file.
-            self._truncated(scan, "is empty (was the writer killed?)" if size == 0
-                            else f"is truncated inside the MCAP magic ({size} bytes; was the writer killed?)",
-                            "Read the bag without it")
+            what = ("is empty (was the writer killed?)" if size == 0
+                    else f"is truncated inside the MCAP magic ({size} bytes; was the writer killed?)")
+            self._truncated(scan, what, "Read the bag without it", what)
             return None
         footer_at = size - MAGIC_SIZE - _FOOTER_RECORD_SIZE
         if size < 2 * MAGIC_SIZE + _FOOTER_RECORD_SIZE or data[-MAGIC_SIZE:] != MCAP_MAGIC or data[footer_at] != Opcode.FOOTER:
             self._truncated(scan, f"is truncated: no MCAP footer ({size} bytes; was the writer killed?)",
-                            "Read every complete chunk of it")
+                            "Read every complete chunk of it",
+                            f"is truncated before its first complete chunk ({size} bytes; was the writer killed?)")
             return None
         footer = Footer.read(ReadDataStream(io.BytesIO(data[footer_at + 9 : size - MAGIC_SIZE])))
         if footer.summary_start == 0:
@@ -679,7 +762,7 @@ class BagReader:
                 elif isinstance(record, Channel):
                     scan.channels[record.id] = record
         except (McapError, struct.error, ValueError) as exc:
-            self._problem(f"{scan.path}: corrupt summary section at byte {footer.summary_start}: {exc}",
+            self._problem(scan, f"{scan.path}: corrupt summary section at byte {footer.summary_start}: {exc}",
                           "reading the data section instead")
             return None
         return chunk_indexes
@@ -740,7 +823,7 @@ class BagReader:
                     records = []
             except Exception as exc:  # decompression, CRC and parse failures of this record
                 self._problem(
-                    f"{scan.path}: corrupt record (opcode 0x{opcode:02x}) at byte {pos}: {type(exc).__name__}: {exc}",
+                    scan, f"{scan.path}: corrupt record (opcode 0x{opcode:02x}) at byte {pos}: {type(exc).__name__}: {exc}",
                     "skipped it and the messages in it",
                 )
                 pos = end
@@ -753,8 +836,8 @@ class BagReader:
                 elif isinstance(record, Message):
                     channel = scan.channels.get(record.channel_id)
                     if channel is None:
-                        self._problem(f"{scan.path}: message at byte {pos} names unknown channel {record.channel_id}",
-                                      "skipped it")
+                        self._problem(scan, f"{scan.path}: message at byte {pos} names unknown channel "
+                                            f"{record.channel_id}", "skipped it")
                         continue
                     heapq.heappush(pending, (record.log_time, order, channel, record.data))
                     order += 1
@@ -763,9 +846,11 @@ class BagReader:
                 if following < len(chunk_offsets):
                     yield from release(release_at[chunk_offsets[following]])
             pos = end
+        scan.messages = order
         if scan.truncated or cut_at is not None:
             lost = "" if cut_at is None else f"; the last {size - cut_at} bytes (an incomplete record at byte {cut_at}) are lost"
-            self._warn(f"{scan.path} {scan.truncated or 'is truncated or corrupt'}: recovered {order} messages{lost}")
+            scan.recovered = f"{scan.path} {scan.truncated or 'is truncated or corrupt'}: recovered {order} messages{lost}"
+            scan.damage = scan.damage or "is damaged before its first complete chunk"
         yield from release(None)
 
 
@@ -826,20 +911,34 @@ def repair(source: str | os.PathLike, out: str | os.PathLike, compression: str =
     one at `out`: every file with its summary, metadata.yaml with the true counts, so that other
     readers (ros2 bag, rosbags, Foxglove) take it. Topics keep their type and the offered QoS that
     the source's metadata.yaml lists; publish times become log times. What could not be read is
-    warned about, as BagReader(recover=True) does. Returns the number of messages written."""
+    warned about, as BagReader(recover=True) does (an unusable metadata.yaml included: the .mcap
+    files beside it are read). Returns the number of messages written; BagUnreadable, and no `out`
+    left behind, if nothing is readable."""
     reader = BagReader(source, raw=True, recover=True)
     listed = {entry["topic_metadata"]["name"]: entry["topic_metadata"]
               for entry in (reader.metadata or {}).get("topics_with_message_count", [])}
+    created = not Path(out).exists()
     count = 0
-    with BagWriter(out, compression=compression, custom_data={"repaired_from": str(source)}) as writer:
-        for topic, type_name in reader.topics().items():
-            qos = listed.get(topic, {}).get("offered_qos_profiles")
-            if isinstance(qos, str):  # rosbag2 before format 9 kept them as a YAML string
-                qos = yaml.safe_load(qos)
-            writer.add_topic(topic, type_name, qos or None)
-        for message in reader:
-            writer.write(message.topic, message.log_time_ns, message.message)
-            count += 1
+    try:  # before reading: a bad `out` fails at once
+        writer = BagWriter(out, compression=compression, custom_data={"repaired_from": str(source)})
+    except OSError as exc:  # a file on the way, a read-only or virtual file system, ...
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise BagError(f"cannot create bag output {out}: {exc.strerror or exc}") from None
+    try:
+        with writer:
+            for topic, type_name in reader.topics().items():
+                qos = listed.get(topic, {}).get("offered_qos_profiles")
+                if isinstance(qos, str):  # rosbag2 before format 9 kept them as a YAML string
+                    qos = yaml.safe_load(qos)
+                writer.add_topic(topic, type_name, qos or None)
+            for message in reader:
+                writer.write(message.topic, message.log_time_ns, message.message)
+                count += 1
+    except BagUnreadable:  # nothing readable: no empty bag in its place
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     return count
 
 
