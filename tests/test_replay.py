@@ -1,6 +1,7 @@
 """replay (bag -> topics with recorded timing and QoS) and the live path against the offline path."""
 import json
 import shutil
+import os
 import signal
 import subprocess
 import sys
@@ -151,6 +152,16 @@ def test_replay_wait_for_names_the_bags_topics(test_bag, ros_domain_id):
     assert proc.returncode == 1 and "Traceback" not in out, out
     assert "--wait-for /camera/mask: not a replayed topic; name one of the bag's topics (/ad_sim/instance, " \
            "/ad_sim/view_0/mask)" in out, out
+
+
+def test_replay_that_hears_no_subscriber_says_what_to_check(test_bag, ros_domain_id):
+    proc = run("ad_estimator.replay", str(test_bag), "--wait-for", "/ad_sim/view_0/mask", "--wait-timeout", "1",
+               "--quiet")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and "Traceback" not in out, out
+    assert (f"no subscriber on /ad_sim/view_0/mask after 1.0 s; is the subscriber running with the same ROS_DOMAIN_ID "
+            f"({ros_domain_id}) and discovery range (ROS_AUTOMATIC_DISCOVERY_RANGE "
+            f"{os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', 'unset')})?") in out, out
 
 
 def test_replay_of_a_bag_without_messages_says_so(tmp_path, ros_domain_id):

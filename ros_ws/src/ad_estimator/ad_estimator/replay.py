@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -99,7 +100,10 @@ class Replayer:
                                f"({', '.join(sorted(self.publishers))}), as recorded, even if remapped")
             while self.publishers[topic].get_subscription_count() == 0:
                 if time.monotonic() > deadline:
-                    raise TimeoutError(f"no subscriber on {topic} after {timeout:.1f} s")
+                    raise TimeoutError(
+                        f"no subscriber on {topic} after {timeout:.1f} s; is the subscriber running with the same "
+                        f"ROS_DOMAIN_ID ({os.environ.get('ROS_DOMAIN_ID', 'unset: 0')}) and discovery range "
+                        f"(ROS_AUTOMATIC_DISCOVERY_RANGE {os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', 'unset')})?")
                 time.sleep(0.01)
 
     def run(self, rate: float, progress: bool = True) -> int:
