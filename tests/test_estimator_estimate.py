@@ -89,6 +89,11 @@ def test_a_robot_bag_without_ground_truth_gets_estimates_on_its_own_topic(setup,
     # Its estimates are the evaluator's on the same frames, once they carry ground truth: checked above on
     # simulator bags; here the two episodes' different frames give different estimates.
     assert rows[0]["p_jelly"] != rows[1]["p_jelly"]
+    assert out.rstrip().endswith("r.csv")
+    # A second run into the same file says that it replaced the first's (the default name is per model).
+    assert estimate.main(["--model", str(model), str(bag), "--topic", CAMERA, "--out", str(tmp_path / "r.csv"),
+                          "--quiet"]) == 0
+    assert capsys.readouterr().out.rstrip().endswith("r.csv (it replaced the file of an earlier run)")
 
 
 def test_episodes_are_counted_by_the_window_so_a_looped_recording_keeps_them_apart(setup, tmp_path):

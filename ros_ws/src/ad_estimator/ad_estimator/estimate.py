@@ -187,6 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"estimate: no estimate from {args.topic} in {[str(b) for b in args.bags]}: {frames} frame(s) read, "
               f"{accepted} accepted{problems}.{hint}", file=sys.stderr)
         return 1
+    replaced = " (it replaced the file of an earlier run)" if out.exists() else ""  # the default name is per model
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         with open(out, "w", newline="") as f:
@@ -199,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.quiet:
         print("\n".join(summary_line(r) for r in rows))
     episodes = len({(r.bag, r.output.episode) for r in rows})
-    print(f"{len(rows)} estimate(s) of {episodes} episode(s) with {model.model_id}{problems}: {out}")
+    print(f"{len(rows)} estimate(s) of {episodes} episode(s) with {model.model_id}{problems}: {out}{replaced}")
     return 1 if failed else 0
 
 

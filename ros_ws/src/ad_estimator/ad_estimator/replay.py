@@ -165,7 +165,7 @@ def main(args=None) -> int:
     one_line_warnings()
     use_fast_heartbeat()  # acknowledgements (and the wait for them at the end) in ms, not at 3 s heartbeats
     rclpy.init(args=argv)
-    node = None
+    node = replayer = None
     try:
         node = Node("ad_replay")
         replayer = Replayer(node, options.bag, options.topics, options.recover)
@@ -179,8 +179,10 @@ def main(args=None) -> int:
     except (BagError, TimeoutError) as exc:
         print(f"replay: {exc}", file=sys.stderr)
         return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+    except (KeyboardInterrupt, ExternalShutdownException):  # stopping a replay early is a normal way to end it
+        if replayer is not None:
+            of = f" of {replayer.total}" if replayer.total else ""  # no metadata.yaml: the count is unknown
+            print(f"replay: stopped after {replayer.published}{of} messages from {options.bag}", file=sys.stderr)
     except RCLError:
         if rclpy.ok():
             raise
