@@ -259,13 +259,13 @@ class EstimatorNode(Node):
         model_time = estimate.inference_time + encode_time
         msg = estimate_message(estimate, out, frame_id, self.info.model_id, model_time)
         self.publisher.publish(msg)
-        if out.complete:  # one line per episode, so that a running node shows it works without ros2 topic echo
-            self.get_logger().info(f"episode {out.episode}: {estimate.describe()} ({model_time * 1e3:.1f} ms)")
         self._count("published")
         with self._lock:
             self.model_times.append(model_time)
             if arrival is not None:
                 self.latencies.append(time.perf_counter() - arrival)
+        if out.complete:  # one line per episode, so that a running node shows it works without ros2 topic echo
+            self.get_logger().info(f"episode {out.episode}: {estimate.describe()} ({model_time * 1e3:.1f} ms)")
         return msg
 
     def _work(self) -> None:
