@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from ad_estimator import estimate, evaluate
+from ad_estimator.model import EstimatorModel
 from ad_sim import messages
 from mcap.reader import make_reader
 
@@ -323,3 +324,22 @@ def test_an_unstamped_camera_is_named_as_the_reason_for_no_estimate(setup, tmp_p
     assert capsys.readouterr().err.endswith(
         "25 frame(s) read, 1 accepted; 24 frame(s) skipped ({'repeated stamp': 24}). Frames that repeat the stamp "
         "before them are skipped: was the camera stamping its images?\n")
+
+
+def test_an_estimate_the_model_cannot_make_is_warned_and_the_others_kept(setup, tmp_path, monkeypatch):
+    """A model whose outputs turn NaN for one window: that row is left out (as the node publishes
+    nothing), the others are written; it once ended the run with a traceback."""
+    model_path, bag = setup
+    predict = EstimatorModel.predict
+    calls = []
+
+    def second_fails(self, features, valid):
+        calls.append(1)
+        if len(calls) == 2:
+            raise ValueError("the model's outputs are not finite (NaN or inf) for these 25 frames")
+        return predict(self, features, valid)
+
+    monkeypatch.setattr(EstimatorModel, "predict", second_fails)
+    with pytest.warns(UserWarning, match=r"episode 2: no estimate: the model's outputs are not finite"):
+        assert run(model_path, bag, "--out", tmp_path / "e.csv") == 0
+    assert [r["episode"] for r in read_csv(tmp_path / "e.csv")] == ["1", "3"]

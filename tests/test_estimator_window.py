@@ -98,7 +98,8 @@ def test_jittery_stamps_match_brute_force_nearest_frame(steps, t0, tolerance):
                           st.booleans()), max_size=120),
        st.sampled_from(["episode", "anytime"]), st.integers(1, 5), st.integers(1, 25))
 def test_random_streams_keep_invariants(events, policy, every_n, min_frames):
-    """Any stamps, sizes and resets: no exception, well-formed outputs, encode at most once per frame."""
+    """Any stamps, sizes and resets: no exception, well-formed outputs, encode at most once per frame
+    (and once more for each frame of an episode's opening when its overtaken first frame restarts it)."""
     window = FrameWindow(0.025, 25, history=1, policy=policy, every_n=every_n, min_frames=min_frames)
     stamp = 10**9
     calls = 0
@@ -112,7 +113,7 @@ def test_random_streams_keep_invariants(events, policy, every_n, min_frames):
             calls += 1
             return np.array([float(s)])
 
-        before = calls
+        before, opening = calls, len(window._opening)
         for out in window.add(stamp, frame(size), encode):
             assert 1 <= len(out.valid) <= 25 and out.valid.any()
             assert out.features.shape == (len(out.valid), 1)
@@ -123,7 +124,7 @@ def test_random_streams_keep_invariants(events, policy, every_n, min_frames):
             assert out.episode_start_ns <= out.oldest_stamp_ns
             if policy == "anytime":
                 assert out.frames_used <= len(out.valid)
-        assert calls - before <= 1
+        assert calls - before <= 1 + opening
     assert window.stats.frames == len(events)
 
 
@@ -173,6 +174,9 @@ def test_duplicate_stamp_is_ignored():
     ([*range(10), 11, 10, *range(12, 25)], 1),  # two neighbours swapped upstream
     ([*range(10), 12, 10, 11, *range(13, 25)], 2),  # one frame overtaking two
     ([*range(15), 11, *range(15, 25)], 1),  # a frame sent again, LATE_FRAMES - 1 intervals late
+    ([*range(15), 15 - LATE_FRAMES, *range(15, 25)], 1),  # exactly LATE_FRAMES intervals late: still late
+    ([1, 0, *range(2, 25)], 0),  # swapped at the release: the episode starts again from frame 0
+    ([2, 3, 1, 0, *range(4, 25)], 0),  # the first frames in any order, within LATE_FRAMES intervals
 ])
 def test_a_frame_out_of_stamp_order_is_dropped_and_the_episode_goes_on(order, late):
     """A late frame once restarted the window: the episode was lost and a new one anchored mid-fall."""
@@ -378,3 +382,28 @@ def test_an_episode_that_ends_without_an_estimate_is_counted():
     assert window.stats.without_estimate == 1 and out.episode == 2
     feed(window, [3 * 10**9])  # the second had its estimate
     assert window.stats.without_estimate == 1
+
+
+def test_a_frame_further_back_than_late_frames_starts_over():
+    window = FrameWindow(0.025, 25, history=1)
+    feed(window, [k * DT for k in range(15)])
+    feed(window, [(14 - LATE_FRAMES - 1) * DT])
+    assert window.stats.late == 0 and window.stats.restarts["backwards"] == 1
+
+
+def test_a_straggler_of_the_episode_before_is_late_not_a_restart():
+    """A frame of the previous episode arriving after the next one's first frame once restarted the
+    window twice (backwards, then by gap) and cost the new episode."""
+    window = FrameWindow(0.025, 25, history=1)
+    feed(window, [k * DT for k in range(20)])
+    second = [10**9 + k * DT for k in range(25)]
+    (out,) = feed(window, second[:1] + [19 * DT - DT] + second[1:])
+    assert window.stats.late == 1 and window.episodes == 2 and chosen(out) == second
+    assert window.stats.restarts == {"first": 1, "gap": 1}
+
+
+def test_episodes_without_estimate_under_the_anytime_policy_and_their_slots():
+    window = FrameWindow(0.025, 25, history=1, policy="anytime", min_frames=15)
+    feed(window, [k * DT for k in range(10)])
+    feed(window, [10**9])
+    assert window.stats.without_estimate == 1 and window.stats.last_without_estimate_slots == 10

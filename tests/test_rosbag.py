@@ -270,6 +270,13 @@ def test_damage_before_the_first_complete_chunk_leaves_nothing_to_recover(tmp_pa
             assert rosbag.main(["repair", str(tmp_path / bag), "--out", str(tmp_path / f"fixed_{bag}")]) == 1
         assert capsys.readouterr().err.startswith(f"error: nothing readable in {tmp_path / bag}")
         assert not (tmp_path / f"fixed_{bag}").exists()
+    # Into an existing empty folder (BagWriter takes one): the folder stays, empty.
+    (tmp_path / "ready").mkdir()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert rosbag.main(["repair", str(tmp_path / "cut"), "--out", str(tmp_path / "ready")]) == 1
+    assert capsys.readouterr().err.startswith(f"error: nothing readable in {tmp_path / 'cut'}")
+    assert (tmp_path / "ready").is_dir() and not any((tmp_path / "ready").iterdir())
 
 
 @pytest.mark.parametrize("content, reason", [

@@ -69,7 +69,11 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
     rows: list[Row] = []
 
     def collect(outputs: list[WindowOutput]) -> None:
-        rows.extend(Row(str(bag), out, model.predict(out.features, out.valid)) for out in outputs)
+        for out in outputs:
+            try:
+                rows.append(Row(str(bag), out, model.predict(out.features, out.valid)))
+            except ValueError as exc:  # outputs that are not finite: no row, as the node publishes none
+                warnings.warn(f"{bag}: episode {out.episode}: no estimate: {exc}")
 
     last_log = None
     for log_time, image in mask_frames(bag, topic, recover):

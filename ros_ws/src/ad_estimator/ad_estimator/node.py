@@ -26,7 +26,6 @@ from ad_msgs.msg import MaterialEstimate
 from ad_msgs.srv import EstimateMaterial
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy._rclpy_pybind11 import RCLError
@@ -38,9 +37,9 @@ from std_srvs.srv import Trigger
 
 from ad_estimator.images import ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, TRAINED_EXTENT, Estimate, EstimatorModel, ModelError, object_extent
-from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, as_number, check_parameters, model_window
+from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
 from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
-from ad_sim.dds import non_ros_args
+from ad_sim.dds import declare_parameters, non_ros_args, number
 
 LOG_THROTTLE_S = 5.0
 MAX_CLIP_FRAMES = 1000
@@ -145,13 +144,9 @@ class EstimatorNode(Node):
     # ------------------------------------------------------------------ set-up
 
     def _declare_parameters(self) -> dict:
-        """Read once, at start: read-only, so that a change at run time is refused, not accepted and ignored."""
-        values = {}
-        for name, (default, description) in PARAMETERS.items():
-            real = isinstance(default, float)  # takes an int too: idle_flush:=0
-            value = self.declare_parameter(name, default, ParameterDescriptor(
-                description=description, read_only=True, dynamic_typing=real)).value
-            values[name] = as_number(name, value) if real else value
+        declare_parameters(self, [(name, default, text) for name, (default, text) in PARAMETERS.items()])
+        values = {name: number(self, name) if isinstance(default, float) else self.get_parameter(name).value
+                  for name, (default, _) in PARAMETERS.items()}
         check_parameters(values)
         return values
 
@@ -216,23 +211,24 @@ class EstimatorNode(Node):
             encode_time[0] = time.perf_counter() - start
             return feature
 
-        episodes, last, settled = self.window.episodes, self.window.last_stamp_ns, self.window.settled
+        episodes, last = self.window.episodes, self.window.last_stamp_ns
         late, duplicates = self.window.stats.late, self.window.stats.duplicates
         without_estimate = self.window.stats.without_estimate
         outputs = self.window.add(stamp, mask, encode)
         if self.window.stats.without_estimate != without_estimate:
             self._count("without_estimate")
-            self.warn("without_estimate", f"episode {episodes} ended with {settled} of the model's "
-                                          f"{self.info.frame_count} frame slots and no estimate: the episode policy "
-                                          "needs all of them (a frame lost at its start or end?); "
-                                          "output_policy:=anytime estimates from min_frames")
+            slots = self.window.stats.last_without_estimate_slots
+            need = (f"the episode policy needs all {self.info.frame_count} (a frame lost at its start or end?); "
+                    "output_policy:=anytime estimates from min_frames" if self.window.policy == "episode" else
+                    f"the anytime policy needs min_frames ({self.window.min_frames})")
+            self.warn("without_estimate", f"episode {episodes} ended with {slots} settled frame slots and no "
+                                          f"estimate: {need}")
         if self.window.episodes != episodes:  # this frame started an episode
             self._check_framing(mask)
         elif self.window.stats.late != late:
             self._count("late")
             self.warn("late", f"frame stamped {stamp / 1e9:.3f} s came after one stamped {last / 1e9:.3f} s: dropped "
-                              "as late (its slot is settled); frames must arrive in stamp order, so check what "
-                              "publishes or relays them")
+                              "as late; frames must arrive in stamp order, so check what publishes or relays them")
         elif self.window.stats.duplicates != duplicates:
             self._count("duplicate")
             self.warn("duplicate", f"frame stamped {stamp / 1e9:.3f} s like the one before it: ignored; a camera "

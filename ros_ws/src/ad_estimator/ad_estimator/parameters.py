@@ -39,14 +39,6 @@ PARAMETERS = {
 }
 
 
-def as_number(name: str, value) -> float:
-    """A parameter with a float default given as a number (`idle_flush:=0` arrives as an int); ValueError
-    naming the parameter otherwise."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    return float(value)
-
-
 def check_parameters(values: dict) -> None:
     """ValueError naming what is wrong with the values given (any subset of PARAMETERS); the window
     checks its own (policy, counts, interval, tolerance) when it is made."""

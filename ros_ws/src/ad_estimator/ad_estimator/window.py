@@ -30,11 +30,15 @@ Episodes. The window restarts (its next frame becomes frame 0) on a stamp more t
 (or ``gap_threshold``, if shorter) before it (a stream or a bag starting over), on a change of
 image size and on ``reset()``. A frame less far back arrived out of order (reordered upstream):
 every slot it could fill is settled already or nearer to the later frame, so it is dropped and
-counted as late, and the episode goes on. (A stream that starts over after at most LATE_FRAMES
-frames cannot be told from reordering by stamps; its first frames are then taken as late.) A frame with the same stamp as the previous one is a duplicate and ignored (a camera that does
-not stamp its images gives nothing but duplicates). The model expects frame 0 at the release of the
-object, so the window is anchored at the episode start; once the episode's last slot is settled,
-further frames are ignored until a restart.
+counted as late, and the episode goes on; so is a frame that far behind the last one of the episode
+before (a straggler across a restart). A frame stamped before the episode's first one, within that
+reach, is the episode's true first frame overtaken at the release: the episode starts again from
+it, with the frames it has (all kept until then). A stream that starts over after at most
+LATE_FRAMES frames cannot be told from reordering by stamps; its first frames are then taken as
+late. A frame with the same stamp as the previous one is a duplicate and ignored (a camera that
+does not stamp its images gives nothing but duplicates). The model expects frame 0 at the release
+of the object, so the window is anchored at the episode start; once the episode's last slot is
+settled, further frames are ignored until a restart.
 
 Output policy. ``episode``: one estimate per episode when all frame_count slots are settled.
 ``anytime``: an estimate when min_frames slots are settled, then each time ``every_n`` more are,
@@ -102,6 +106,7 @@ class WindowStats:
     late: int = 0  # frames older than the last one by at most LATE_FRAMES intervals: out of order, dropped
     duplicates: int = 0  # frames stamped like the previous one
     without_estimate: int = 0  # episodes that ended (the next one started) without any estimate
+    last_without_estimate_slots: int = 0  # the settled slots of the latest of those
     restarts: Counter = field(default_factory=Counter)  # by reason
 
 
@@ -152,11 +157,8 @@ class FrameWindow:
         self._settled = 0  # slots 0.._settled-1 are final
         self._emitted = 0  # settled count at the last estimate (0 = none yet)
         self._done = False
-
-    @property
-    def settled(self) -> int:
-        """Slots of the current episode that are final."""
-        return self._settled
+        self._opening: list[tuple[int, np.ndarray, Encode]] = []  # frames within late_ns of the start
+        self._previous_last_ns: int | None = None  # the last stamp of the episode before, for stragglers
 
     @property
     def last_stamp_ns(self) -> int | None:
@@ -172,9 +174,20 @@ class FrameWindow:
         outputs = self.flush() if self._start_ns is not None else []
         if self._start_ns is not None and not self._emitted:
             self.stats.without_estimate += 1
+            self.stats.last_without_estimate_slots = self._settled
         self.stats.restarts[reason] += 1
+        last = self._last_ns
         self.reset()
+        self._previous_last_ns = last
         return outputs
+
+    def _restart_from(self, stamp_ns: int, frame: np.ndarray, encode: Encode) -> list[WindowOutput]:
+        """The episode's true first frame came after others (swapped at the release): the episode
+        starts again from it, with its frames so far (all within late_ns of its start, so kept)."""
+        frames, previous = [(stamp_ns, frame, encode), *self._opening], self._previous_last_ns
+        self.reset()
+        self._previous_last_ns = previous
+        return [out for frame_args in frames for out in self._offer(*frame_args)]
 
     def add(self, stamp_ns: int, frame: np.ndarray, encode: Encode) -> list[WindowOutput]:
         """Offer one frame (stamp in ns); ``encode(frame, earlier)`` is called only if it lands in a slot.
@@ -190,7 +203,12 @@ class FrameWindow:
         elif size != self._size:
             outputs = self._restart(RESTART_SIZE)
         elif self._last_ns - stamp_ns > self.late_ns:
+            if self._previous_last_ns is not None and 0 <= self._previous_last_ns - stamp_ns <= self.late_ns:
+                self.stats.late += 1  # a straggler of the episode before
+                return outputs
             outputs = self._restart(RESTART_BACKWARDS)
+        elif stamp_ns < self._start_ns:
+            return self._restart_from(stamp_ns, frame, encode)
         elif stamp_ns < self._last_ns:
             self.stats.late += 1
             return outputs
@@ -199,18 +217,23 @@ class FrameWindow:
         elif stamp_ns == self._last_ns:
             self.stats.duplicates += 1
             return outputs
+        return outputs + self._offer(stamp_ns, frame, encode)
+
+    def _offer(self, stamp_ns: int, frame: np.ndarray, encode: Encode) -> list[WindowOutput]:
+        """Place a frame that continues (or starts) the current episode; the estimates then due."""
         if self._start_ns is None:
-            self._start_ns, self._size = stamp_ns, size
+            self._start_ns, self._size = stamp_ns, frame.shape
+        if stamp_ns - self._start_ns <= self.late_ns:
+            self._opening.append((stamp_ns, frame, encode))
         self._last_ns = stamp_ns
         if self._done:
             self.stats.ignored += 1
-            return outputs
+            return []
         self._place(stamp_ns, frame, encode)
         offset = stamp_ns - self._start_ns + SETTLE_EPSILON_NS
         self._settled = min(self.frame_count, max(self._settled, offset // self.interval_ns + 1))
         self._forget_frames()
-        outputs.extend(self._due(final=False))
-        return outputs
+        return self._due(final=False)
 
     def _place(self, stamp_ns: int, frame: np.ndarray, encode: Encode) -> None:
         rel = stamp_ns - self._start_ns

@@ -1,5 +1,6 @@
-"""ROS process set-up shared by the nodes: their command line (non_ros_args) and, for those that
-publish the simulator's topics (simulator, replay), DDS writer settings (use_fast_heartbeat).
+"""ROS process set-up shared by the nodes: their command line (non_ros_args), their parameters
+(declare_parameters, number) and, for those that publish the simulator's topics (simulator,
+replay), DDS writer settings (use_fast_heartbeat).
 
 Reliable writers repair a lost sample and learn of acknowledgements at their heartbeats: every
 3 s by default on Fast DDS. That caps paced playback and can hold a stream up for seconds after
@@ -11,6 +12,8 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
+
+from rcl_interfaces.msg import ParameterDescriptor
 
 FAST_HEARTBEAT_PROFILE = Path(__file__).resolve().parent / "data" / "dds" / "fast_heartbeat.xml"
 
@@ -35,3 +38,20 @@ def non_ros_args(prog: str, argv: list[str]) -> list[str]:
         reason = str(exc).split(", at ")[0]  # rcl appends its C source locations
         print(f"{prog}: {reason}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def declare_parameters(node, parameters) -> None:
+    """Declares (name, default, meaning) parameters, read-only: they are read once, at start, so a
+    change at run time (`ros2 param set`) is refused instead of accepted and ignored. Those with a
+    float default take ints as well (`real_time_factor:=0`, `idle_flush:=0`): read them with `number`."""
+    for name, default, meaning in parameters:
+        node.declare_parameter(name, default, ParameterDescriptor(
+            description=meaning, read_only=True, dynamic_typing=isinstance(default, float)))
+
+
+def number(node, name: str) -> float:
+    """A float parameter's value; ValueError naming the parameter if it is not a number."""
+    value = node.get_parameter(name).value
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    return float(value)

@@ -27,7 +27,8 @@ from rclpy.signals import SignalHandlerOptions
 
 from . import messages
 from .rosbag import BagError, BagWriter, header_stamp_ns, load_schema, qos_profile, starts_with_header
-from .sim_node import declare_parameters, handle_help, import_message_class, number
+from .dds import declare_parameters, number
+from .sim_node import handle_help, import_message_class
 
 DRAIN_IDLE = 0.3  # s without incoming work after a stop signal before the bag is closed
 

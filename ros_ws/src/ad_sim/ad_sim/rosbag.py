@@ -917,13 +917,22 @@ def repair(source: str | os.PathLike, out: str | os.PathLike, compression: str =
     reader = BagReader(source, raw=True, recover=True)
     listed = {entry["topic_metadata"]["name"]: entry["topic_metadata"]
               for entry in (reader.metadata or {}).get("topics_with_message_count", [])}
-    created = not Path(out).exists()
+    out = Path(out)
+    created = not out.exists()
+    existing = set(out.iterdir()) if out.is_dir() else set()  # BagWriter also takes an empty folder
+
+    def clean_up() -> None:  # what this call made, and only that: no empty or half-made bag in its place
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        elif out.is_dir():
+            for path in set(out.iterdir()) - existing:
+                shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+
     count = 0
     try:  # before reading: a bad `out` fails at once
         writer = BagWriter(out, compression=compression, custom_data={"repaired_from": str(source)})
     except OSError as exc:  # a file on the way, a read-only or virtual file system, ...
-        if created:
-            shutil.rmtree(out, ignore_errors=True)
+        clean_up()
         raise BagError(f"cannot create bag output {out}: {exc.strerror or exc}") from None
     try:
         with writer:
@@ -936,8 +945,7 @@ def repair(source: str | os.PathLike, out: str | os.PathLike, compression: str =
                 writer.write(message.topic, message.log_time_ns, message.message)
                 count += 1
     except BagUnreadable:  # nothing readable: no empty bag in its place
-        if created:
-            shutil.rmtree(out, ignore_errors=True)
+        clean_up()
         raise
     return count
 

@@ -28,7 +28,6 @@ import threading
 import time
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import SingleThreadedExecutor
@@ -38,7 +37,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from . import materials, messages
-from .dds import non_ros_args, use_fast_heartbeat
+from .dds import declare_parameters, non_ros_args, number, use_fast_heartbeat
 
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
@@ -162,24 +161,6 @@ def parameter_help(parameters) -> str:
     return "ROS parameters (--ros-args -p name:=value):\n" + "\n".join(
         f"  {name} (default {shown(default)}): {meaning}" for name, default, meaning in parameters
     )
-
-
-def declare_parameters(node: Node, parameters) -> None:
-    """Declares (name, default, meaning) parameters, read-only: they are read once, at start, so a
-    change at run time (`ros2 param set`) is refused instead of accepted and ignored. Those with a
-    float default take ints as well (`real_time_factor:=0`, `youngs_modulus:=1500000`): read them
-    with `number`."""
-    for name, default, meaning in parameters:
-        node.declare_parameter(name, default, ParameterDescriptor(
-            description=meaning, read_only=True, dynamic_typing=isinstance(default, float)))
-
-
-def number(node: Node, name: str) -> float:
-    """A float parameter's value; ValueError naming the parameter if it is not a number."""
-    value = node.get_parameter(name).value
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    return float(value)
 
 
 def handle_help(prog: str, doc: str, parameters, args: list[str] | None) -> None:
