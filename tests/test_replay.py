@@ -193,6 +193,21 @@ def test_replay_stops_cleanly_on_signals(test_bag, sig, ros_domain_id):
         assert re.search(rf"replay: stopped after \d+ of 78 messages from {re.escape(str(test_bag))}", out), out
 
 
+def test_replay_loop_plays_the_bag_again_until_stopped(test_bag, ros_domain_id):
+    with ros_context(ros_domain_id) as (context, executor):
+        node = Node("replay_listener", context=context)
+        frames = []
+        node.create_subscription(Image, MASK_TOPIC, lambda m: frames.append(stamp_ns(m.header.stamp)), RELIABLE)
+        executor.add_node(node)
+        proc = run("ad_estimator.replay", str(test_bag), "--rate", "20", "--quiet", "--loop", "--wait-for",
+                   MASK_TOPIC)
+        assert wait_for(lambda: len(frames) > 2 * 75, timeout=60)  # past a second pass of the 75 frames
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=20)
+    assert proc.returncode == 0 and re.search(r"replay: stopped after \d+ messages from ", out), out
+    assert frames[75:150] == frames[:75]  # the second pass is the first again, stamps included
+
+
 def live_and_offline_inputs(tmp_path):
     """The committed sample bags and the bundled model when they exist, else a written bag and test model."""
     bags = sorted(p.parent for p in SAMPLES.glob("*/metadata.yaml"))

@@ -146,6 +146,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for --wait-for")
     parser.add_argument("--delay", type=float, default=0.5,
                         help="seconds between creating publishers and the first message (discovery)")
+    parser.add_argument("--loop", action="store_true",
+                        help="play the bag again each time it ends, until stopped (Ctrl-C); its stamps start over "
+                             "too, which the estimator takes as a new episode")
     parser.add_argument("--recover", action="store_true",
                         help="play truncated or damaged files (a killed recorder) up to their last complete chunk")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -172,6 +175,10 @@ def main(args=None) -> int:
         replayer.wait_for_subscribers(options.wait_for, options.wait_timeout)
         time.sleep(options.delay)
         count = replayer.run(options.rate, progress=not options.quiet)
+        while options.loop and rclpy.ok(context=node.context):
+            played, count = count, replayer.run(options.rate, progress=not options.quiet)
+            if count == played:  # nothing to play: looping would only spin
+                break
         acked = replayer.wait_for_acknowledgments(5.0)
         print(f"replay: published {count} messages from {options.bag}"
               + ("" if count else " (it holds none on the replayed topics)")
@@ -181,7 +188,8 @@ def main(args=None) -> int:
         return 1
     except (KeyboardInterrupt, ExternalShutdownException):  # stopping a replay early is a normal way to end it
         if replayer is not None:
-            of = f" of {replayer.total}" if replayer.total else ""  # no metadata.yaml: the count is unknown
+            # per pass, and unknown without metadata.yaml
+            of = f" of {replayer.total}" if replayer.total and not options.loop else ""
             print(f"replay: stopped after {replayer.published}{of} messages from {options.bag}", file=sys.stderr)
     except RCLError:
         if rclpy.ok():
