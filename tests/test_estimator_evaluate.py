@@ -166,8 +166,12 @@ def test_an_intact_bag_records_no_source_problem(setup, tmp_path, capsys):
     model, bag = setup
     assert run_main(model, bag, tmp_path / "out") == 0
     assert json.loads((tmp_path / "out" / "predictions.json").read_text())["source_problems"] == []
-    assert "input problems" not in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "input problems" not in out and out.rstrip().endswith("predictions.json")
     assert "Input problems" not in (tmp_path / "out" / "report.md").read_text()
+    # A second run into the same folder says that it replaced the first's report.
+    assert run_main(model, bag, tmp_path / "out") == 0
+    assert capsys.readouterr().out.rstrip().endswith("predictions.json (it replaced the report of an earlier run)")
 
 
 def test_a_bag_with_nothing_readable_says_so(setup, tmp_path, capsys):

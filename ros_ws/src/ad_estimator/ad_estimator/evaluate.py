@@ -295,6 +295,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     title = args.title or f"{model.model_id} on {', '.join(str(b) for b in args.bags)}"
     by_frames = {k: to_metrics(v, model.info.parameter_names) for k, v in results.items() if v}
+    replaced = " (it replaced the report of an earlier run)" if (out / "report.md").exists() else ""
     try:
         report = metrics.write_report(by_frames, out, title)
         if problems:
@@ -313,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     print(metrics.format_table(report, title))
     if problems:
         print(f"\ninput problems: {problems} (see the warnings above)")
-    print(f"\nreport: {out / 'report.md'}  predictions: {out / 'predictions.json'}")
+    print(f"\nreport: {out / 'report.md'}  predictions: {out / 'predictions.json'}{replaced}")
     return 0
 
 
