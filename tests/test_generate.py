@@ -141,6 +141,13 @@ def test_rerun_with_other_settings_is_refused_and_keeps_the_bag(tmp_path, capsys
         assert f"other settings ({named}" in error and "delete it or choose another --out" in error, error
     assert digests(shard) == before and sorted(p.name for p in shard.iterdir()) == sorted(
         [DONE_MARKER, "unseen-0of1_0.mcap", "metadata.yaml"])  # the finished bag is left as it was
+    # A marker from before markers recorded settings cannot be compared: skipped as done, with a warning.
+    marker = json.loads((shard / DONE_MARKER).read_text())
+    (shard / DONE_MARKER).write_text(json.dumps({k: v for k, v in marker.items() if k != "settings"}))
+    assert main([*args, "--limit", "1", "--views", "2"]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {shard} records no settings (an older version wrote it), so it is taken as done" in err, err
+    assert "already done, skipped" in err
 
 
 @pytest.mark.ros

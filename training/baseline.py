@@ -16,7 +16,6 @@ does not depend on its batch, so on CPU a fit does not depend on which instances
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import time
@@ -27,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ad_estimator.metrics import Predictions, compute_metrics, format_table
+from ad_estimator.metrics import Predictions, compute_metrics, format_table, json_text
 from ad_sim.instances import Instance, benchmark
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, PARAMETER_NAMES, SAMPLED_PARAMETERS
 from ad_sim.mpm import check_device
@@ -230,7 +229,7 @@ def run(args) -> dict:
                       for inst, fit in zip(instances, fits)]
     out = Path(args.out or f"runs/baseline/{name}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
+    out.write_text(json_text(result))  # strict JSON: NaN (no instance of a family) becomes null
     print(format_table({str(observed.shape[1]): result["metrics"]}, f"per-scene CMA-ES baseline on {name}"))
     print(format_psnr(result["psnr"], len(fits)))
     print(f"{result['seconds_per_instance']:.2f} s per instance ({len(fits)} instances, {args.generations} x "

@@ -3,7 +3,8 @@
 streaming: <name>.frame.onnx (frame (B,C,H,W) -> embedding (B,D); channels after the first hold
 the earlier observed masks, newest first, see ad.frame_inputs) and <name>.onnx (embeddings
 (B,T,D), valid (B,T) -> logits, params, params_logvar). clip: <name>.onnx (masks (B,T,H,W),
-valid (B,T) -> the same outputs; fewer than 25 frames are zero-padded inside the graph).
+valid (B,T) -> the same outputs). T is the frame count, 25: the estimator gives unobserved slots
+zeros with valid 0.
 """
 from __future__ import annotations
 

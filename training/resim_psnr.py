@@ -9,7 +9,6 @@ that the per-scene baseline shares (observed videos + Instances from /ad_sim/ins
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import time
@@ -17,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ad_estimator.metrics import json_text
 from ad_sim.instances import Instance
 from ad_sim.materials import FAMILIES, FRAME_COUNT, SAMPLED_PARAMETERS, full_parameters
 from ad_sim.mpm import check_device
@@ -151,7 +151,7 @@ def run(args) -> dict:
     result = model_psnr(args.model, args.bags, args.device, args.instances, args.seed, not args.no_progress)
     out = Path(args.out or f"runs/resim_psnr/{result['model_id']}-{Path(args.bags).name}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
+    out.write_text(json_text(result))  # strict JSON: NaN (no instance of a family) becomes null
     print(format_table({str(FRAME_COUNT): result["metrics"]}, f"{result['model_id']} on {args.bags}"))
     print(format_psnr(result["psnr"], len(result["episodes"])))
     print(f"wrote {out}")

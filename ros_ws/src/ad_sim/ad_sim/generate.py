@@ -58,7 +58,9 @@ def shard_settings(instances: list, views: int | None, skip: frozenset[str], com
 
 def _check_settings(folder: Path, settings: dict) -> None:
     recorded = json.loads((folder / DONE_MARKER).read_text()).get("settings")
-    if recorded is None:  # written before markers recorded their settings
+    if recorded is None:  # written before markers recorded their settings: they cannot be compared
+        print(f"warning: {folder} records no settings (an older version wrote it), so it is taken as done whatever "
+              "was asked for now; delete it to write it with these settings", file=sys.stderr)
         return
     differing = sorted(key for key in settings if recorded.get(key) != settings[key])
     if differing:
