@@ -34,12 +34,12 @@ from ad_estimator.cli import HelpFormatter  # noqa: E402
 from ad_estimator.evaluate import predict_episode, to_metrics  # noqa: E402
 from ad_estimator.metrics import (Predictions, compute_metrics, json_text, markdown_table, regl1,  # noqa: E402
                                   table_cell, table_labels, table_values)
-from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError  # noqa: E402
+from ad_estimator.model import BUNDLED_MODEL  # noqa: E402
 from ad_sim.episode import simulate_batch  # noqa: E402
 from ad_sim.messages import instance_message  # noqa: E402
 from ad_sim.instances import drawn_per_family  # noqa: E402
 from ad_sim.materials import FRAME_INTERVAL  # noqa: E402
-from common import add_unseen_draw_options, check_warp_device, quiet_warp  # noqa: E402
+from common import add_unseen_draw_options, check_warp_device, load_model, quiet_warp  # noqa: E402
 
 
 CROP = 64  # rows cut from the top and from the bottom of the 512x512 render for the 4:3 camera
@@ -63,10 +63,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     quiet_warp()
     check_warp_device(p, args.device)
-    try:
-        model = EstimatorModel.load(args.model)
-    except ModelError as exc:
-        p.error(str(exc))
+    model = load_model(p, args.model)
     chosen = drawn_per_family(args.size, "unseen", args.instances, args.seed)
     print(f"simulating {len(chosen)} episodes on {args.device}", file=sys.stderr)
     episodes = simulate_batch(chosen, device=args.device, full_masks=True, views=1, progress=True)

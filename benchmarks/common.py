@@ -1,6 +1,6 @@
 """Shared by the benchmark scripts: synthetic input clips, the summary of timed samples, the options
 that pick the unseen instances a benchmark simulates, and argument checks that refuse a bad count,
-output path or Warp device before any work (a run can take hours)."""
+output path, model or Warp device before any work (a run can take hours)."""
 from __future__ import annotations
 
 import argparse
@@ -60,6 +60,16 @@ def check_warp_device(parser: argparse.ArgumentParser, device: str) -> None:
     try:
         mpm.check_device(device)
     except ValueError as exc:
+        parser.error(str(exc))
+
+
+def load_model(parser: argparse.ArgumentParser, path: Path, **options):
+    """EstimatorModel.load(path, **options), or parser.error (one line, exit 2) naming what is wrong with it."""
+    from ad_estimator.model import EstimatorModel, ModelError
+
+    try:
+        return EstimatorModel.load(path, **options)
+    except ModelError as exc:
         parser.error(str(exc))
 
 

@@ -34,10 +34,10 @@ sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_w
 
 from ad_estimator.cli import HelpFormatter, positive  # noqa: E402
 from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask  # noqa: E402
-from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel, ModelError  # noqa: E402
+from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel  # noqa: E402
 from ad_estimator.parameters import PARAMETERS as NODE  # noqa: E402
 from ad_estimator.window import FrameWindow  # noqa: E402
-from common import falling_disc_clips, json_out, percentiles  # noqa: E402  (benchmarks/, the script's folder)
+from common import falling_disc_clips, json_out, load_model, percentiles  # noqa: E402  (benchmarks/, the script's folder)
 
 TOPIC = "/latency_benchmark/mask"
 FRAME_NS = 25_000_000
@@ -199,10 +199,7 @@ def main(argv=None) -> int:
         return 0
     if args.provider != "cpu" and not args.no_ros:
         parser.error("--provider cuda is measured with --no-ros (the node's execution_provider parameter does the same)")
-    try:
-        model = EstimatorModel.load(args.model, threads=args.threads, provider=args.provider)
-    except ModelError as exc:
-        parser.error(str(exc))
+    model = load_model(parser, args.model, threads=args.threads, provider=args.provider)
     result = run_no_ros(args, model) if args.no_ros else run_ros(args)
     result["setup"] = {"model": str(args.model), "model_id": model.model_id, "kind": model.info.kind,
                        "mode": "no-ros" if args.no_ros else "ros", "policy": args.policy, "every_n": args.every_n,

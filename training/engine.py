@@ -199,34 +199,44 @@ def _shown(flag: str, value) -> str:
     return f"{flag} {value}"
 
 
-def check_resumable(out_dir: Path, recipe: dict, config: dict | None, stage: str,
-                    saved_config: Callable[[dict], dict] = dict) -> None:
+def check_resumable(out_dir: Path, recipe: dict, config: dict, stage: str,
+                    saved_config: Callable[[dict], dict] = dict) -> dict | None:
     """Refuses, before any data loads, to resume the run in `out_dir` under options other than
     those it was trained with: another seed or validation fraction would move the validation
     split, another batch size, epoch count or number of processes the learning-rate schedule,
     another loss or model make a different run under the same name. `recipe` maps command-line
     flags to values (checkpoints from before recipes were saved recorded only --select); `config`
-    is the resolved model config (from --size, --kind, --set, ..., and a student's teacher), or None
-    for a check of recipe entries alone (those known only once the data has loaded). `saved_config`
-    brings the config saved in `last.pt` to today's fields (older checkpoints named some otherwise)."""
+    is the resolved model config (from --size, --kind, --set, ..., and a student's teacher).
+    `saved_config` brings the config saved in `last.pt` to today's fields (older checkpoints named
+    some otherwise). Returns the recipe `last.pt` recorded (None when there is no run to resume),
+    for check_recipe of the entries known only once the data has loaded."""
     last = out_dir / LAST
     if not last.exists():
-        return
+        return None
     try:
         state = load_checkpoint(last, stage)
     except ValueError as e:
         raise ValueError(f"{e} (or delete {last} to start this run over)") from None
-    restart = f"Resume it with the same options, or train into a new --out (or delete {last} to start this run over)"
     recorded = state.get("recipe") or {"--select": state.get("select", "score")}
+    check_recipe(last, recorded, recipe)
+    saved = saved_config(state["meta"].get("config", {}))
+    if differing := [key for key in sorted(saved.keys() | config.keys()) if saved.get(key) != config.get(key)]:
+        change = ", ".join(f"{key} {saved.get(key)} -> {config.get(key)}" for key in differing)
+        raise ValueError(f"{last} holds another model ({change}: set by --size, --kind, --previous-frames, "
+                         f"--encoder-channels, --set, or a student's teacher). {_restart_hint(last)}")
+    return recorded
+
+
+def check_recipe(last: Path, recorded: dict, recipe: dict) -> None:
+    """Refuses a resume of `last` (whose recipe was `recorded`) under a `recipe` that differs in any entry both have."""
     if differing := [flag for flag in recorded if flag in recipe and recorded[flag] != recipe[flag]]:
         was = " ".join(_shown(flag, recorded[flag]) for flag in differing)
         now = " ".join(_shown(flag, recipe[flag]) for flag in differing)
-        raise ValueError(f"{last} was trained with {was}; this run asks for {now}. {restart}")
-    saved = saved_config(state["meta"].get("config", {}))
-    if config is not None and (differing := [key for key in sorted(saved.keys() | config.keys()) if saved.get(key) != config.get(key)]):
-        change = ", ".join(f"{key} {saved.get(key)} -> {config.get(key)}" for key in differing)
-        raise ValueError(f"{last} holds another model ({change}: set by --size, --kind, --previous-frames, "
-                         f"--encoder-channels, --set, or a student's teacher). {restart}")
+        raise ValueError(f"{last} was trained with {was}; this run asks for {now}. {_restart_hint(last)}")
+
+
+def _restart_hint(last: Path) -> str:
+    return f"Resume it with the same options, or train into a new --out (or delete {last} to start this run over)"
 
 
 def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: Path, cfg: FitConfig, rt: Runtime,

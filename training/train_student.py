@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +19,8 @@ from training.engine import (BEST, check_resumable, fit, init_runtime, load_chec
 from training.models.common import align_loss, task_loss
 from training.models.student import FRAME_COUNT, StudentConfig, build_student, override_config, student_preset
 from training.models.teacher import TEACHER_PRESETS
-from training.train_teacher import RECIPE_OPTIONS, add_common_args, fit_config, load_teacher, recipe, teacher_targets
+from training.train_teacher import (RECIPE_OPTIONS, add_common_args, fit_config, load_run_data, load_teacher, recipe,
+                                    teacher_targets)
 
 ABLATIONS = ("none", "align_only", "full")
 # SPEC 9: 0.1 align + 1.0 CE + 0.2 RegL1 (+ a small weight on the uncertainty head's NLL).
@@ -232,14 +232,10 @@ def run(args) -> Path:
     except ValueError as e:
         raise SystemExit(str(e)) from None
     run_recipe = student_recipe(args, rt, teacher)
-    check_resumable(Path(args.out), run_recipe, config.to_dict(), "student",
-                    saved_config=lambda saved: StudentConfig.from_dict(saved).to_dict())
-    ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
-    bags = {"--bags contents": ds.fingerprint()}
-    check_resumable(Path(args.out), bags, None, "student")
+    resumed = check_resumable(Path(args.out), run_recipe, config.to_dict(), "student",
+                              saved_config=lambda saved: StudentConfig.from_dict(saved).to_dict())
+    ds, bags = load_run_data(args, rt, resumed)
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
-    if rt.main and (warning := ds.test_split_warning(args.bags)):
-        tqdm.write(warning, file=sys.stderr)
     targets = teacher_targets(teacher, ds, rt.device) if teacher and args.ablation != "none" else None
     frames = main_first(rt, lambda: data.resized_videos(ds, tuple(config.input_size),
                                                           rt.main and not args.no_progress))

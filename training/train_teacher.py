@@ -15,8 +15,8 @@ from ad_estimator.cli import count, fraction, positive, torch_device_or_auto
 from ad_estimator.metrics import Predictions
 from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
 from training import data
-from training.engine import (BEST, SELECT_METRICS, FitConfig, check_resumable, fit, init_runtime, load_checkpoint,
-                             main_first, seed_everything, wants_on_device)
+from training.engine import (BEST, LAST, SELECT_METRICS, FitConfig, check_recipe, check_resumable, fit, init_runtime,
+                             load_checkpoint, main_first, seed_everything, wants_on_device)
 from training.evaluate import print_results, write_evaluation
 from training.models.common import task_loss
 from training.models.teacher import TEACHER_PRESETS, Teacher, TeacherConfig
@@ -191,6 +191,19 @@ def recipe(args, rt, names: tuple[str, ...] = RECIPE_OPTIONS) -> dict:
     return {"--" + name.replace("_", "-"): getattr(args, name) for name in names} | {"torchrun processes": rt.world}
 
 
+def load_run_data(args, rt, resumed: dict | None) -> tuple[data.Dataset, dict]:
+    """The instances under --bags and their recipe entry; a run being resumed (`resumed`: its
+    recorded recipe, from check_resumable) must have trained on the same ones. Warns when they
+    include the benchmark's test instances."""
+    ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
+    bags = {"--bags contents": ds.fingerprint()}
+    if resumed is not None:
+        check_recipe(Path(args.out) / LAST, resumed, bags)
+    if rt.main and (warning := ds.test_split_warning(args.bags)):
+        tqdm.write(warning, file=sys.stderr)
+    return ds, bags
+
+
 def fit_config(args) -> FitConfig:
     return FitConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, weight_decay=args.weight_decay,
                      min_lr=args.min_lr, seed=args.seed, progress=not args.no_progress,
@@ -213,13 +226,9 @@ def run(args) -> Path:
     seed_everything(args.seed)
     rt = init_runtime(args.device)
     config = TEACHER_PRESETS[args.size]
-    check_resumable(Path(args.out), recipe(args, rt), config.to_dict(), "teacher")
-    ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
-    bags = {"--bags contents": ds.fingerprint()}
-    check_resumable(Path(args.out), bags, None, "teacher")
+    resumed = check_resumable(Path(args.out), recipe(args, rt), config.to_dict(), "teacher")
+    ds, bags = load_run_data(args, rt, resumed)
     train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
-    if rt.main and (warning := ds.test_split_warning(args.bags)):
-        tqdm.write(warning, file=sys.stderr)
     model = Teacher(config).to(rt.device)
     on_device = None
     if wants_on_device(args.trajectories_on_device, rt):

@@ -150,6 +150,10 @@ class FrameWindow:
 
     def reset(self) -> None:
         """Forget the current episode; the next frame starts a new one."""
+        self._clear_episode()
+        self._previous_last_ns: int | None = None  # the last stamp of the episode before, for stragglers
+
+    def _clear_episode(self) -> None:
         self._start_ns: int | None = None
         self._last_ns: int | None = None
         self._size: tuple | None = None
@@ -158,7 +162,6 @@ class FrameWindow:
         self._emitted = 0  # settled count at the last estimate (0 = none yet)
         self._done = False
         self._opening: list[tuple[int, np.ndarray, Encode]] = []  # frames within late_ns of the start
-        self._previous_last_ns: int | None = None  # the last stamp of the episode before, for stragglers
 
     @property
     def last_stamp_ns(self) -> int | None:
@@ -176,17 +179,15 @@ class FrameWindow:
             self.stats.without_estimate += 1
             self.stats.last_without_estimate_slots = self._settled
         self.stats.restarts[reason] += 1
-        last = self._last_ns
-        self.reset()
-        self._previous_last_ns = last
+        self._previous_last_ns = self._last_ns
+        self._clear_episode()
         return outputs
 
     def _restart_from(self, stamp_ns: int, frame: np.ndarray, encode: Encode) -> list[WindowOutput]:
         """The episode's true first frame came after others (swapped at the release): the episode
         starts again from it, with its frames so far (all within late_ns of its start, so kept)."""
-        frames, previous = [(stamp_ns, frame, encode), *self._opening], self._previous_last_ns
-        self.reset()
-        self._previous_last_ns = previous
+        frames = [(stamp_ns, frame, encode), *self._opening]
+        self._clear_episode()
         return [out for frame_args in frames for out in self._offer(*frame_args)]
 
     def add(self, stamp_ns: int, frame: np.ndarray, encode: Encode) -> list[WindowOutput]:

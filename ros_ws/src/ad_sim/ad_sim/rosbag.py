@@ -918,14 +918,13 @@ def repair(source: str | os.PathLike, out: str | os.PathLike, compression: str =
     listed = {entry["topic_metadata"]["name"]: entry["topic_metadata"]
               for entry in (reader.metadata or {}).get("topics_with_message_count", [])}
     out = Path(out)
-    created = not out.exists()
-    existing = set(out.iterdir()) if out.is_dir() else set()  # BagWriter also takes an empty folder
+    created = not out.exists()  # else an empty folder: BagWriter refuses anything else before writing
 
-    def clean_up() -> None:  # what this call made, and only that: no empty or half-made bag in its place
+    def clean_up() -> None:  # what this call made: no empty or half-made bag in its place
         if created:
             shutil.rmtree(out, ignore_errors=True)
         elif out.is_dir():
-            for path in set(out.iterdir()) - existing:
+            for path in out.iterdir():
                 shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
 
     count = 0
