@@ -16,7 +16,8 @@ summary and footer sit at the end, so any rewrite changes the key). Contents:
   params_norm.npy      (N, 4) float32 normalised over the union ranges (0 where not sampled)
   param_mask.npy       (N, 4) float32 1 where the family samples the parameter (RegL1 targets)
   trajectories.npy     (N, 25, 1024, 15) float16: x y z, median-normalised displacement, F (row-major)
-  videos.npy           (M, 25, 128, 128) uint8 0/255, one per (instance, view)
+  videos.npy           (M, 25, 128, 128) uint8 0/255, one per (instance, view); levels 0..255 in the
+                       folder `<key>-coverage` that load_dataset(coverage=True) writes (grey masks)
   video_instance.npy   (M,) int64 row of the video's instance; video_view.npy (M,) int64 camera index
   videos_<H>x<W>.npy   (M, 25, H, W) float16 in [0, 1], area-resized for a student (made on demand)
 """
@@ -33,7 +34,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask
+from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, image_to_mask
 from ad_sim.materials import (
     FAMILIES,
     FRAME_COUNT,
@@ -87,16 +88,17 @@ class EpisodeRejected(ValueError):
     """An episode of a bag cannot be used (the message names the bag, the episode and why)."""
 
 
-def episode_video(bag: Path, episode_id: str, topic: str, frames) -> np.ndarray:
-    """(T, MASK_SIZE, MASK_SIZE) uint8 {0, 255} masks of one episode's [(stamp_ns, Image)] frames,
-    converted as the estimator converts camera frames (ad_estimator.images). EpisodeRejected
+def episode_video(bag: Path, episode_id: str, topic: str, frames, coverage: bool = False) -> np.ndarray:
+    """(T, MASK_SIZE, MASK_SIZE) uint8 {0, 255} masks of one episode's [(stamp_ns, Image)] frames
+    (with `coverage`, the levels as they are: grey masks), converted as the estimator converts
+    camera frames (ad_estimator.images). EpisodeRejected
     for a frame that cannot be used or is not of the simulator's mask size (what re-simulation
     renders and the cache stacks)."""
     masks = []
     for stamp, image in frames:
         where = f"{bag}: episode {episode_id}: {topic} frame stamped {stamp / 1e9:.3f} s"
         try:
-            mask = image_to_mask(image, MAX_IMAGE_PIXELS)
+            mask = image_to_mask(image, MAX_IMAGE_PIXELS, None if coverage else DEFAULT_THRESHOLD)
         except ValueError as exc:
             raise EpisodeRejected(f"{where}: {exc}") from exc
         if mask.shape != (MASK_SIZE, MASK_SIZE):
@@ -151,7 +153,7 @@ def _frames(items, start_ns: int) -> dict[int, tuple[int, object]]:
     return out
 
 
-def read_bag(bag: Path) -> tuple[list[dict], list[str]]:
+def read_bag(bag: Path, coverage: bool = False) -> tuple[list[dict], list[str]]:
     """Decodes one bag into its complete episodes, and what was missing or unreadable, one line each:
     the reader's warnings (a truncated file, read in recover mode) and the episodes skipped, each
     warned as it is found. An episode is skipped when it lacks frames or one of its frames cannot
@@ -177,7 +179,8 @@ def read_bag(bag: Path) -> tuple[list[dict], list[str]]:
             log.warning("%s", skipped[-1])
             continue
         try:
-            videos = {view: episode_video(bag, inst.episode_id, topic, frames) for view, (topic, frames) in views.items()}
+            videos = {view: episode_video(bag, inst.episode_id, topic, frames, coverage)
+                      for view, (topic, frames) in views.items()}
         except EpisodeRejected as exc:
             skipped.append(f"{exc}; episode skipped")
             log.warning("%s", skipped[-1])
@@ -310,19 +313,20 @@ class Dataset:
         return np.array([pick[i] for i in sorted(pick)], dtype=np.int64)
 
 
-def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True) -> Dataset:
-    """Decodes every bag under `bags` that is not cached yet, then opens the cached dataset."""
+def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True, coverage: bool = False) -> Dataset:
+    """Decodes every bag under `bags` that is not cached yet, then opens the cached dataset. With
+    `coverage` the videos keep the masks' grey levels (a separate cache folder per bag)."""
     cache_dir = Path(cache_dir)
     shards, problems = [], []
     for path in tqdm(find_bags(bags), desc="cache bags", disable=not progress, unit="bag"):
-        folder = cache_dir / bag_key(path)
+        folder = cache_dir / (bag_key(path) + ("-coverage" if coverage else ""))
         if (folder / "meta.json").exists():
             source_problems = json.loads((folder / "meta.json").read_text())["source_problems"]
             for problem in source_problems:
                 log.warning("cached from an incomplete bag: %s", problem)
         else:
             try:
-                episodes, source_problems = read_bag(path)
+                episodes, source_problems = read_bag(path, coverage)
             except BagUnreadable as exc:  # damaged before its first complete chunk: left out, saying why
                 episodes, source_problems = [], [str(exc)]
                 log.warning("%s", exc)

@@ -72,7 +72,7 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
     model = EstimatorModel.load(model_path, threads=threads)
     if record:
         read_model_metrics(model_path)  # a corrupt file fails now, not after the evaluation
-    ds = data.load_dataset(bags, cache, progress=progress)
+    ds = data.load_dataset(bags, cache, progress=progress, coverage=model.info.mask_levels == "coverage")
     by_frames = predict_dataset(model, ds, frames, progress=progress)
     title = title or f"{model.model_id} on {bags}"
     if out is None:

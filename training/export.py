@@ -107,6 +107,8 @@ def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None
     model_id = model_id or f"{out.stem}-{config.kind}-{meta.get('ablation', 'full')}-{digest[:8]}"
     h, w = config.input_size
     extra = {"ad.training": json.dumps({k: meta[k] for k in ("size", "ablation", "seed") if k in meta})}
+    if config.mask_levels != "binary":  # absent means binary, so earlier estimators refuse nothing they can read
+        extra["ad.mask_levels"] = config.mask_levels
     written = []
     with torch.no_grad():
         if config.kind == "streaming":

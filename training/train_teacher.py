@@ -191,11 +191,12 @@ def recipe(args, rt, names: tuple[str, ...] = RECIPE_OPTIONS) -> dict:
     return {"--" + name.replace("_", "-"): getattr(args, name) for name in names} | {"torchrun processes": rt.world}
 
 
-def load_run_data(args, rt, resumed: dict | None) -> tuple[data.Dataset, dict]:
+def load_run_data(args, rt, resumed: dict | None, coverage: bool = False) -> tuple[data.Dataset, dict]:
     """The instances under --bags and their recipe entry; a run being resumed (`resumed`: its
     recorded recipe, from check_resumable) must have trained on the same ones. Warns when they
-    include the benchmark's test instances."""
-    ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress))
+    include the benchmark's test instances. `coverage`: grey mask videos (data.load_dataset)."""
+    ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress,
+                                                  coverage=coverage))
     bags = {"--bags contents": ds.fingerprint()}
     if resumed is not None:
         check_recipe(Path(args.out) / LAST, resumed, bags)

@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ad_estimator.model import MASK_LEVELS
 from training.models.common import Heads, Transformer, masked_pool
 
 FRAME_COUNT = 25
@@ -39,6 +40,9 @@ class StudentConfig:
     # first), so the CNN can compare consecutive masks pixel by pixel before pooling blurs a few
     # pixels of squash, and with two or more see acceleration. 0 for models trained before it existed.
     previous_frames: int = 0
+    # What a mask pixel holds: binary (0/255, the simulator's default) or coverage (its area coverage
+    # 0..255, bags from ad_sim.generate --coverage-masks), which keeps each edge to a fraction of a pixel.
+    mask_levels: str = "binary"
     temporal_width: int = 128
     temporal_depth: int = 2
     temporal_heads: int = 4
@@ -47,6 +51,10 @@ class StudentConfig:
     depths: tuple[int, ...] = (1, 2, 2, 1)
     global_stages: int = 2  # the last stages use global attention
     dropout: float = 0.1
+
+    def __post_init__(self):
+        if self.mask_levels not in MASK_LEVELS:
+            raise ValueError(f"mask_levels is one of {', '.join(MASK_LEVELS)}, got {self.mask_levels!r}")
 
     def to_dict(self) -> dict:
         d = asdict(self)

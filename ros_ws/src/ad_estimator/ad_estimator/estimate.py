@@ -64,6 +64,7 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
     parameter `values` (PARAMETERS names). `tally` counts the frames read ("frames") and those
     rejected, by reason; each rejection is also warned about."""
     window = model_window(values, model.info)
+    threshold = values["mask_threshold"] if model.info.mask_levels == "binary" else None  # as the node
     idle_ns = int(values["idle_flush"] * 1e9)
     tally = Counter() if tally is None else tally
     rows: list[Row] = []
@@ -83,7 +84,7 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
         last_log = log_time
         stamp = stamp_to_ns(image.header.stamp.sec, image.header.stamp.nanosec)
         try:
-            mask = image_to_mask(image, values["max_image_pixels"], values["mask_threshold"])
+            mask = image_to_mask(image, values["max_image_pixels"], threshold)
         except ImageRejected as exc:
             warnings.warn(f"{bag}: frame stamped {stamp / 1e9:.3f} s skipped, as the node rejects it: {exc}")
             tally[exc.kind] += 1

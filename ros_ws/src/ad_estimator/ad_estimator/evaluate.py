@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from ad_estimator import metrics
 from ad_estimator.cli import HelpFormatter
-from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS, ImageRejected, image_to_mask
+from ad_estimator.images import MAX_IMAGE_PIXELS, ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC
 from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns
@@ -121,7 +121,7 @@ def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = Fals
 
 
 def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed: int,
-                    slot_tolerance: float = DEFAULT_SLOT_TOLERANCE, threshold: int = DEFAULT_THRESHOLD,
+                    slot_tolerance: float = DEFAULT_SLOT_TOLERANCE,
                     masks: list[np.ndarray] | None = None, encode=None) -> EpisodePrediction | None:
     """The estimate from the episode's first `observed` frames. `masks` (the frames converted) and
     `encode` (e.g. caching) let several prefixes of one episode share that work."""
@@ -129,7 +129,7 @@ def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed
     if not frames:
         return None
     if masks is None:
-        masks = [image_to_mask(image, MAX_IMAGE_PIXELS, threshold) for _, image in frames]
+        masks = [image_to_mask(image, MAX_IMAGE_PIXELS, model.info.mask_threshold) for _, image in frames]
     out = clip_output([s for s, _ in frames], masks[:observed], encode or model.encode, model.info.frame_interval,
                       model.info.frame_count, slot_tolerance=slot_tolerance, history=model.info.previous_frames)
     estimate = model.predict(out.features, out.valid)
@@ -148,12 +148,13 @@ def to_metrics(predictions: list[EpisodePrediction], parameter_names: tuple[str,
     return metrics.Predictions.from_episodes([vars(p) for p in predictions], parameter_names)
 
 
-def accepted_frames(bag: Path, instance, frames) -> tuple[list, list[np.ndarray], list[dict]]:
-    """The episode's frames the node would accept, their masks, and the ones it would reject."""
+def accepted_frames(bag: Path, instance, frames, threshold: int | None) -> tuple[list, list[np.ndarray], list[dict]]:
+    """The episode's frames the node would accept, their masks (image_to_mask with `threshold`), and the
+    ones it would reject."""
     accepted, masks, rejected = [], [], []
     for stamp, image in frames:
         try:
-            masks.append(image_to_mask(image, MAX_IMAGE_PIXELS))
+            masks.append(image_to_mask(image, MAX_IMAGE_PIXELS, threshold))
             accepted.append((stamp, image))
         except ImageRejected as exc:
             rejected.append({"bag": str(bag), "episode_id": instance.episode_id, "stamp_ns": stamp, "reason": str(exc)})
@@ -186,7 +187,7 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
     skipped; an episode whose window holds fewer than K frame slots is left out of the K row.
     Each of these is noted in `result` and warned about, naming the bag and episode."""
     where = f"{bag}: episode {instance.episode_id}"
-    frames, masks, rejected = accepted_frames(bag, instance, frames)
+    frames, masks, rejected = accepted_frames(bag, instance, frames, model.info.mask_threshold)
     if rejected:
         result.skipped_frames += rejected
         warnings.warn(f"{where}: {len(rejected)} mask frame(s) skipped, as the node rejects them; the first at "

@@ -4,6 +4,8 @@ Pure numpy. Accepted encodings (pixel is "object" when above the threshold):
 - mono8 / 8UC1: value > threshold (default 127; simulator masks are 0/255).
 - mono16 / 16UC1: value > threshold * 257 (the same fraction of full scale), either endianness.
 - rgb8 / bgr8 / rgba8 / bgra8 / 8UC3 / 8UC4: brightest colour channel > threshold (alpha ignored).
+With threshold None the levels are kept instead (0..255; mono16 scaled down), for models that read
+grey masks, each pixel's area coverage (ad.mask_levels "coverage", docs/architecture.md).
 Anything else is refused. The size check uses only header fields (height, width, step), so an
 oversized or malformed image is refused before any buffer of ours is allocated.
 """
@@ -47,8 +49,9 @@ def check_header(height: int, width: int, encoding: str, step: int, max_pixels: 
     return depth, channels
 
 
-def image_to_mask(msg, max_pixels: int, threshold: int = DEFAULT_THRESHOLD) -> np.ndarray:
-    """(height, width) uint8 mask in {0, 255} from an Image-like ``msg``; ImageRejected if unusable."""
+def image_to_mask(msg, max_pixels: int, threshold: int | None = DEFAULT_THRESHOLD) -> np.ndarray:
+    """(height, width) uint8 mask in {0, 255} from an Image-like ``msg`` (threshold None: its levels,
+    0..255); ImageRejected if unusable."""
     height, width, step, encoding = int(msg.height), int(msg.width), int(msg.step), str(msg.encoding)
     depth, channels = check_header(height, width, encoding, step, max_pixels)
     try:
@@ -61,10 +64,12 @@ def image_to_mask(msg, max_pixels: int, threshold: int = DEFAULT_THRESHOLD) -> n
     if depth == 2:
         dtype = ">u2" if msg.is_bigendian else "<u2"
         pixels = np.ascontiguousarray(rows).view(dtype).reshape(height, width)
-        limit = threshold * 257
+        limit = None if threshold is None else threshold * 257
     elif channels == 1:
         pixels, limit = rows, threshold
     else:
         pixels = rows.reshape(height, width, channels)[:, :, : ENCODINGS[encoding][2]].max(axis=2)
         limit = threshold
+    if threshold is None:
+        return (pixels // 257).astype(np.uint8) if depth == 2 else np.array(pixels, np.uint8)
     return (pixels > limit).astype(np.uint8) * np.uint8(255)

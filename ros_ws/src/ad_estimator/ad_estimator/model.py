@@ -27,6 +27,8 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
+from .images import DEFAULT_THRESHOLD
+
 REQUIRED_METADATA = (
     "ad.model_id",
     "ad.class_names",
@@ -40,6 +42,9 @@ REQUIRED_METADATA = (
     "ad.kind",
 )
 KINDS = ("clip", "streaming")
+# What a mask pixel holds for the model (ad.mask_levels, default binary): 0/255, or the area coverage
+# 0..255 of the simulator's 512x512 render (ad_sim.generate --coverage-masks).
+MASK_LEVELS = ("binary", "coverage")
 # The bundled default model, installed with the package (package data, found next to this module).
 BUNDLED_MODEL = Path(__file__).resolve().parent / "models" / "default.onnx"
 
@@ -59,14 +64,16 @@ def frame_inputs(previous_frames: int) -> tuple[str, ...]:
 SIMULATOR_MASK_SIZE = 128
 
 
-def as_simulator_mask(mask: np.ndarray) -> np.ndarray:
+def as_simulator_mask(mask: np.ndarray, coverage: bool = False) -> np.ndarray:
     """A binary mask (non-zero = object) of any size -> the 128x128 0/255 mask the simulator would
     have made of it from its 512x512 render (ad_sim.render.downsample): the area average, inside
     where at least half of the pixel is covered. A 128x128 mask is taken as it is. Without the
     threshold, a camera's full-resolution mask would reach the model with grey edges that it never
-    saw in training. A mask that is not square is first centred on a square background
-    (letterboxed): the simulator's cameras are square, and stretching would change the object's
-    proportions, which is what the model reads materials from."""
+    saw in training. With `coverage` (models trained on grey masks, ad.mask_levels), `mask` holds
+    levels 0..255 and the area average is kept as 0..255, rounded as the simulator rounds it. A mask
+    that is not square is first centred on a square background (letterboxed): the simulator's
+    cameras are square, and stretching would change the object's proportions, which is what the
+    model reads materials from."""
     size = (SIMULATOR_MASK_SIZE, SIMULATOR_MASK_SIZE)
     if mask.shape == size:
         return mask
@@ -74,8 +81,11 @@ def as_simulator_mask(mask: np.ndarray) -> np.ndarray:
     side = max(height, width)  # images.check_header bounds side * side by max_image_pixels
     inside = np.zeros((side, side), np.float32)
     top, left = (side - height) // 2, (side - width) // 2
-    inside[top : top + height, left : left + width] = mask != 0  # the kernel counts non-zero pixels
+    # the kernel counts non-zero pixels
+    inside[top : top + height, left : left + width] = mask * np.float32(1 / 255) if coverage else mask != 0
     covered = cv2.resize(inside, size[::-1], interpolation=cv2.INTER_AREA)
+    if coverage:
+        return np.floor(covered * 255 + 0.5).astype(np.uint8)
     return np.where(covered >= 0.5, 255, 0).astype(np.uint8)
 
 
@@ -131,6 +141,12 @@ class ModelInfo:
     input_size: tuple[int, int]  # (H, W)
     frame_encoder: Path | None  # streaming models only
     frame_inputs: tuple[str, ...] = ("mask",)  # input channels of the frame encoder, see frame_inputs()
+    mask_levels: str = "binary"  # binary: 0/255 masks; coverage: each pixel's area coverage, 0..255
+
+    @property
+    def mask_threshold(self) -> int | None:
+        """What images.image_to_mask is given for this model: None keeps a coverage model's grey levels."""
+        return None if self.mask_levels == "coverage" else DEFAULT_THRESHOLD
 
     @property
     def previous_frames(self) -> int:
@@ -216,8 +232,12 @@ def parse_metadata(meta: dict[str, str], path: Path) -> ModelInfo:
                                  f"({list(frame_inputs(0))}, {list(frame_inputs(1))}, {list(frame_inputs(2))}, ...: "
                                  "the mask, then its earlier observed frames, newest first); "
                                  "update ad_estimator or re-export")
+    mask_levels = meta.get("ad.mask_levels", "binary")
+    if mask_levels not in MASK_LEVELS:
+        raise ModelError(f"{path}: ad.mask_levels is {mask_levels!r}, expected one of {MASK_LEVELS}; update ad_estimator "
+                         "or re-export")
     return ModelInfo(path, meta["ad.model_id"], kind, class_names, parameter_names, ranges, family_parameters,
-                     fixed, frame_interval, frame_count, input_size, frame_encoder, inputs)
+                     fixed, frame_interval, frame_count, input_size, frame_encoder, inputs, mask_levels)
 
 
 # Execution providers by short name. CPU is the robot's default: for a model this small, copying
@@ -355,10 +375,11 @@ class EstimatorModel:
         return self.info.model_id
 
     def prepare(self, mask: np.ndarray) -> np.ndarray:
-        """Binary uint8 mask (0/255) of any size -> float32 (H, W) in [0, 1] at the model's input size:
-        first the simulator's mask (as_simulator_mask), then area interpolation, as training does."""
+        """Binary uint8 mask (0/255; levels 0..255 for a coverage model) of any size -> float32 (H, W) in
+        [0, 1] at the model's input size: first the simulator's mask (as_simulator_mask), then area
+        interpolation, as training does."""
         h, w = self.info.input_size
-        mask = as_simulator_mask(mask)
+        mask = as_simulator_mask(mask, self.info.mask_levels == "coverage")
         if mask.shape != (h, w):
             mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_AREA)
         return mask.astype(np.float32) * np.float32(1.0 / 255.0)

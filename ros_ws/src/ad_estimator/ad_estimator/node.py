@@ -101,7 +101,8 @@ class EstimatorNode(Node):
         self.slot_tolerance = p["slot_tolerance"]
         self.window = model_window(p, self.info)
         self.max_pixels = p["max_image_pixels"]
-        self.threshold = p["mask_threshold"]
+        # A model of grey masks reads the levels themselves (ModelInfo.mask_threshold), not a threshold.
+        self.threshold = p["mask_threshold"] if self.info.mask_levels == "binary" else None
         self.idle_flush = p["idle_flush"]
 
         self.queue: queue.Queue = queue.Queue(maxsize=p["queue_size"])

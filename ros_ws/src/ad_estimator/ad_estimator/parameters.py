@@ -32,7 +32,8 @@ PARAMETERS = {
                                        "from 25; from fewer it is much less (temporal OOD in models/MODEL_CARD.md "
                                        "and the README)"),
     "max_image_pixels": (MAX_IMAGE_PIXELS, "images over this many pixels, counted as the square they are letterboxed to, are rejected from their header alone"),
-    "mask_threshold": (DEFAULT_THRESHOLD, "pixel > threshold (of 255, scaled for 16 bit) is object"),
+    "mask_threshold": (DEFAULT_THRESHOLD, "pixel > threshold (of 255, scaled for 16 bit) is object "
+                                          "(models of grey masks, ad.mask_levels coverage, read the levels instead)"),
     "queue_size": (64, "frames waiting for the worker; more are dropped and counted"),
     "idle_flush": (DEFAULT_IDLE_FLUSH, "seconds without input after which pending slots settle (0: never)"),
     "diagnostics_period": (1.0, "seconds between /diagnostics messages"),

@@ -41,7 +41,7 @@ class Episode:
     instance: Instance
     positions: np.ndarray  # (25, 1024, 3) float32, tracked particles
     deformation: np.ndarray  # (25, 1024, 3, 3) float32, F of tracked particles (row-major)
-    masks: np.ndarray  # (V, 25, 128, 128) uint8 in {0, 255}
+    masks: np.ndarray  # (V, 25, 128, 128) uint8 in {0, 255}, or 0..255 area coverage if asked for
     masks_full: np.ndarray | None  # (V, 25, 512, 512) uint8 in {0, 255}, only if asked for
     cameras: list[Camera]  # per view, at the 128x128 mask resolution
     substeps_per_frame: int
@@ -108,7 +108,7 @@ def _track(members: list[_Prepared], device: str) -> None:
         p.binding = p.binding.reindexed(record)
 
 
-def _render(prepared: list[_Prepared], vertices: list[np.ndarray], full: bool, device: str):
+def _render(prepared: list[_Prepared], vertices: list[np.ndarray], full: bool, coverage: bool, device: str):
     """Masks of every view and frame of a group of instances, in shared launches."""
     vertex_sets, jobs = [], []
     for i, (p, v) in enumerate(zip(prepared, vertices)):
@@ -117,7 +117,8 @@ def _render(prepared: list[_Prepared], vertices: list[np.ndarray], full: bool, d
         for camera in p.cameras:
             projection = camera.resized(FULL_SIZE, FULL_SIZE).projection()
             jobs.extend(RenderJob(first + t, i, projection) for t in range(len(v)))
-    masks, masks_full = render_masks(vertex_sets, [p.faces for p in prepared], jobs, FULL_SIZE, DOWNSAMPLE, full, device)
+    masks, masks_full = render_masks(vertex_sets, [p.faces for p in prepared], jobs, FULL_SIZE, DOWNSAMPLE, full, device,
+                                     coverage)
     out, start = [], 0
     for p, v in zip(prepared, vertices):
         shape = (len(p.cameras), len(v))
@@ -140,11 +141,13 @@ def simulate_batch(
     views: int | None = None,
     max_batch: int | None = None,
     frame_count: int = FRAME_COUNT,
+    coverage_masks: bool = False,
 ) -> list[Episode]:
     """Simulates and renders the instances; returns their episodes in the same order.
 
     views overrides each instance's number of views; max_batch bounds scenes per solver launch
-    (default MAX_BATCH of the device kind); frame_count < 25 is for quick checks only.
+    (default MAX_BATCH of the device kind); frame_count < 25 is for quick checks only;
+    coverage_masks keeps each mask pixel's area coverage (render.downsample) instead of 0/255.
     """
     if max_batch is None:
         max_batch = MAX_BATCH["cuda" if str(device).startswith("cuda") else "cpu"]
@@ -163,7 +166,7 @@ def simulate_batch(
         _track(members, device)
         results = mpm.simulate([p.scene for p in members], device=device, frame_count=frame_count)
         vertices = [advect_vertices(p.binding, r.positions, r.deformation) for p, r in zip(members, results)]
-        rendered = _render(members, vertices, full_masks, device)
+        rendered = _render(members, vertices, full_masks, coverage_masks, device)
         for i, p, r, (masks, masks_full) in zip(group, members, results, rendered):
             episodes[i] = Episode(
                 instance=instances[i],

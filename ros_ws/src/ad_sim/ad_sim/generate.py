@@ -46,14 +46,17 @@ class ShardMismatch(ValueError):
     """A finished shard was written with other settings than those asked for now."""
 
 
-def shard_settings(instances: list, views: int | None, skip: frozenset[str], compression: str, max_bag_size: int) -> dict:
+def shard_settings(instances: list, views: int | None, skip: frozenset[str], compression: str, max_bag_size: int,
+                   coverage_masks: bool = False) -> dict:
     """What decides a shard's content, as recorded in its DONE marker."""
     episodes = [[i.episode_id, i.split, i.shape, i.material, i.parameters, i.seed] for i in instances]
-    return {
+    settings = {
         "episodes": hashlib.sha256(json.dumps(episodes, sort_keys=True).encode()).hexdigest(),
         "views": sorted({views or i.views for i in instances}),  # as simulated: --views 1 on unseen is the default
         "skip": sorted(skip), "compression": compression, "max_bag_size": max_bag_size,
     }
+    # Only when set, so that markers written before the option still match the default.
+    return settings | ({"masks": "coverage"} if coverage_masks else {})
 
 
 def _check_settings(folder: Path, settings: dict) -> None:
@@ -62,7 +65,7 @@ def _check_settings(folder: Path, settings: dict) -> None:
         print(f"warning: {folder} records no settings (an older version wrote it), so it is taken as done whatever "
               "was asked for now; delete it to write it with these settings", file=sys.stderr)
         return
-    differing = sorted(key for key in settings if recorded.get(key) != settings[key])
+    differing = sorted(key for key in settings.keys() | recorded.keys() if recorded.get(key) != settings.get(key))
     if differing:
         names = ", ".join("instances (split, seed, --limit or file)" if key == "episodes" else key for key in differing)
         raise ShardMismatch(
@@ -99,14 +102,16 @@ def generate_shard(
     custom_data: dict[str, str] | None = None,
     skip: frozenset[str] = frozenset(),
     progress: bool = True,
+    coverage_masks: bool = False,
 ) -> bool:
     """Simulate `instances` and write them as one bag folder; False if it was already done with the
-    same settings. Raises ShardMismatch if it was done with others."""
+    same settings. Raises ShardMismatch if it was done with others. coverage_masks: mask pixels hold
+    their area coverage (0..255) instead of 0/255 (episode.simulate_batch)."""
     from tqdm import tqdm
 
     from .episode import simulate_batch
 
-    settings = shard_settings(instances, views, skip, compression, max_bag_size)
+    settings = shard_settings(instances, views, skip, compression, max_bag_size, coverage_masks)
     if is_done(folder):
         _check_settings(folder, settings)
         return False
@@ -116,7 +121,8 @@ def generate_shard(
     writer = BagWriter(folder, max_bag_size=max_bag_size, compression=compression, custom_data=custom_data)
     with tqdm(total=len(instances), desc=folder.name, unit="episode", disable=not progress) as bar:
         for start in range(0, len(instances), batch):
-            episodes = simulate_batch(instances[start : start + batch], device=device, views=views)
+            episodes = simulate_batch(instances[start : start + batch], device=device, views=views,
+                                      coverage_masks=coverage_masks)
             write_episodes(writer, episodes, start, skip=skip)
             bar.update(len(episodes))
     writer.close()
@@ -154,6 +160,11 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--skip-particles", action="store_true", help="leave out /ad_sim/particles (60 KB a frame, hardly compressible): masks-only bags"
     )
+    parser.add_argument(
+        "--coverage-masks", action="store_true",
+        help="mask pixels hold their area coverage of the 512x512 render (0..255, grey edges) instead of 0/255: for "
+             "training students on grey masks (python -m training student --set mask_levels=coverage); a pixel > 127 is "
+             "still exactly the object, so the estimator and everything that thresholds reads the same masks")
     parser.add_argument("--quiet", action="store_true", help="no progress bars, no Warp start-up messages")
     return parser
 
@@ -209,7 +220,8 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
     source = {"instances": str(args.instances)} if args.instances else {"size": args.size, "split": args.split, "seed": str(args.seed)}
     for index in index_range:
         folder = shard_dir(args.out, name, index, count)
-        custom = {"generator": "ad_sim.generate", "shard": f"{index}/{count}", **source}
+        custom = {"generator": "ad_sim.generate", "shard": f"{index}/{count}", **source,
+                  **({"masks": "coverage"} if args.coverage_masks else {})}
         writing.append(folder)
         try:
             wrote = generate_shard(
@@ -223,6 +235,7 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
                 custom_data=custom,
                 skip=frozenset([messages.particles_topic()]) if args.skip_particles else frozenset(),
                 progress=not args.quiet,
+                coverage_masks=args.coverage_masks,
             )
         except (BagError, ShardMismatch) as exc:
             print(f"error: {exc}", file=sys.stderr)

@@ -302,7 +302,7 @@ def _rasterise_kernel(
 
 
 @wp.kernel
-def _downsample_kernel(full: wp.array3d(dtype=wp.uint8), factor: int, out: wp.array3d(dtype=wp.uint8)):
+def _downsample_kernel(full: wp.array3d(dtype=wp.uint8), factor: int, coverage: int, out: wp.array3d(dtype=wp.uint8)):
     # A flat launch: multi-dimensional launches are much slower per thread on Warp's CPU backend.
     n = wp.tid()
     height = out.shape[1]
@@ -315,8 +315,11 @@ def _downsample_kernel(full: wp.array3d(dtype=wp.uint8), factor: int, out: wp.ar
         for dx in range(factor):
             if full[image, y * factor + dy, x * factor + dx] != wp.uint8(0):
                 covered += 1
-    # Block mean >= 0.5 -> inside.
-    if 2 * covered >= factor * factor:
+    area = factor * factor
+    if coverage != 0:
+        # The block mean as 0..255, rounded half up: > 127 exactly where the threshold below says inside.
+        out[image, y, x] = wp.uint8((510 * covered + area) / (2 * area))
+    elif 2 * covered >= area:  # block mean >= 0.5 -> inside
         out[image, y, x] = wp.uint8(255)
     else:
         out[image, y, x] = wp.uint8(0)
@@ -331,19 +334,21 @@ class RenderJob:
     projection: np.ndarray  # (3, 4) world -> pixel at the full resolution
 
 
-def _downsample_device(full: wp.array, factor: int, device: str) -> wp.array:
+def _downsample_device(full: wp.array, factor: int, coverage: bool, device: str) -> wp.array:
     count, height, width = full.shape
     if height % factor or width % factor:
         raise ValueError(f"mask size {height}x{width} is not a multiple of {factor}")
     out = wp.empty((count, height // factor, width // factor), dtype=wp.uint8, device=device)
-    wp.launch(_downsample_kernel, dim=out.size, inputs=[full, factor, out], device=device)
+    wp.launch(_downsample_kernel, dim=out.size, inputs=[full, factor, int(coverage), out], device=device)
     return out
 
 
-def downsample(full: np.ndarray, factor: int = DOWNSAMPLE, device: str = "cpu") -> np.ndarray:
-    """Area-downsample binary masks (G, H, W) by `factor` (block mean, threshold 0.5) -> {0, 255}."""
+def downsample(full: np.ndarray, factor: int = DOWNSAMPLE, coverage: bool = False, device: str = "cpu") -> np.ndarray:
+    """Area-downsample binary masks (G, H, W) by `factor`: the block mean thresholded at 0.5 -> {0, 255},
+    or with `coverage` the block mean itself as 0..255 (rounded; > 127 exactly where the threshold
+    puts the object, so a consumer that thresholds at 127 reads the binary masks)."""
     source = wp.array(np.ascontiguousarray(full, dtype=np.uint8), dtype=wp.uint8, device=device)
-    return _downsample_device(source, factor, device).numpy()
+    return _downsample_device(source, factor, coverage, device).numpy()
 
 
 def render_masks(
@@ -354,12 +359,14 @@ def render_masks(
     factor: int = DOWNSAMPLE,
     full: bool = False,
     device: str = "cpu",
+    coverage: bool = False,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Rasterise many silhouettes in shared kernel launches.
 
     vertex_sets: world-space vertex arrays (N_i, 3); face_sets: triangle index arrays (M_j, 3)
     indexing into a vertex set; jobs: one RenderJob per image. Returns masks (G, size/factor,
-    size/factor) uint8 {0, 255} and, if `full`, the (G, size, size) masks they came from.
+    size/factor) uint8 {0, 255} (with `coverage`: 0..255, see downsample) and, if `full`, the
+    (G, size, size) masks they came from.
     """
     vertex_counts = np.array([len(v) for v in vertex_sets], dtype=np.int64)
     face_counts = np.array([len(f) for f in face_sets], dtype=np.int64)
@@ -395,7 +402,7 @@ def render_masks(
             ],
             device=device,
         )
-        masks[first : first + len(chunk)] = _downsample_device(chunk_full, factor, device).numpy()
+        masks[first : first + len(chunk)] = _downsample_device(chunk_full, factor, coverage, device).numpy()
         if full:
             masks_full[first : first + len(chunk)] = chunk_full.numpy()
     return masks, masks_full
