@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -49,6 +50,40 @@ def fabricated_episode(seed: int, views: int = 1, frames: int = 25, material: st
         substeps_per_frame=int(rng.integers(10, 100)),
         particle_count=int(rng.integers(3000, 9000)),
     )
+
+
+def grey_masks(masks: np.ndarray, shift: tuple[int, int] = (1, 2)) -> np.ndarray:
+    """0/255 masks (..., 128, 128) -> grey masks as generate --coverage-masks makes them: each pixel
+    becomes its 4x4 block of the 512x512 render, the render is moved by `shift` render pixels (so
+    that edges cut blocks) and area-downsampled with coverage (ad_sim.render.downsample)."""
+    from ad_sim.render import DOWNSAMPLE, downsample
+
+    size = masks.shape[-1]
+    full = np.kron(masks.reshape(-1, size, size), np.ones((1, DOWNSAMPLE, DOWNSAMPLE), np.uint8))
+    return downsample(np.roll(full, shift, axis=(1, 2)), coverage=True).reshape(masks.shape)
+
+
+def thresholded(masks: np.ndarray) -> np.ndarray:
+    """What every thresholding consumer (mask_threshold 127) reads of grey masks."""
+    return np.where(masks > 127, 255, 0).astype(np.uint8)
+
+
+def write_coverage_bag(folder, episodes: int, views: int = 1, seed: int = 0, binary: bool = False):
+    """training.synthetic's bag (particles, ground truth, masks) with grey masks (grey_masks of its
+    own); `binary`: the same bag with those masks thresholded. Returns the folder and the episodes."""
+    from ad_sim.generate import write_episodes
+    from ad_sim.rosbag import BagWriter
+    from training.synthetic import synthetic_episode
+
+    written = [synthetic_episode(i, seed, views) for i in range(episodes)]
+    for episode in written:
+        episode.masks = grey_masks(episode.masks)
+        if binary:
+            episode.masks = thresholded(episode.masks)
+    writer = BagWriter(folder)
+    write_episodes(writer, written, 0)
+    writer.close()
+    return Path(folder), written
 
 
 def _is_field(name: str) -> bool:

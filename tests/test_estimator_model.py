@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ad_estimator.images import ImageRejected, image_to_mask
-from ad_estimator.model import (BUNDLED_MODEL, SIMULATOR_MASK_SIZE, TRAINED_EXTENT, EstimatorModel, ModelError,
-                                as_simulator_mask, frame_inputs, object_extent)
+from ad_estimator.images import DEFAULT_THRESHOLD, ImageRejected, image_to_mask
+from ad_estimator.model import (BUNDLED_MODEL, MASK_LEVELS, SIMULATOR_MASK_SIZE, TRAINED_EXTENT, EstimatorModel,
+                                ModelError, as_simulator_mask, frame_inputs, object_extent)
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
 
 
@@ -173,6 +173,78 @@ def test_a_camera_that_is_not_square_keeps_the_objects_proportions():
     got = as_simulator_mask(disc)
     rows, cols = np.flatnonzero(got.any(axis=1)), np.flatnonzero(got.any(axis=0))
     assert abs(len(rows) - len(cols)) <= 1  # a disc stays round
+
+
+def test_camera_masks_become_the_simulators_coverage_masks(tmp_path):
+    """For a model of grey masks (ad.mask_levels coverage), a 512x512 camera mask reaches the model as
+    the simulator's coverage downsampling (generate --coverage-masks) would have made it: the
+    same levels, rounded the same way, so prepare sees grey edges."""
+    from ad_sim.render import downsample
+
+    full = camera_masks(0)
+    simulator = downsample(full, coverage=True)
+    coverage = {}
+    for kind, path in (("clip", build_clip_model(tmp_path / "clip.onnx")), ("streaming", build_streaming_model(tmp_path))):
+        _with_metadata(path, **{"ad.mask_levels": "coverage"})
+        coverage[kind] = EstimatorModel.load(path)
+    for mask, expected in zip(full, simulator):
+        got = as_simulator_mask(mask, coverage=True)
+        assert got.dtype == np.uint8 and got.shape == (SIMULATOR_MASK_SIZE, SIMULATOR_MASK_SIZE)
+        np.testing.assert_array_equal(got, expected)
+        assert ((expected > 0) & (expected < 255)).any()
+        np.testing.assert_array_equal(got > 127, as_simulator_mask(mask) == 255)  # thresholds to the binary mask
+        np.testing.assert_array_equal(as_simulator_mask(expected, coverage=True), expected)  # 128x128: as it is
+        for model in coverage.values():
+            prepared = model.prepare(mask)
+            np.testing.assert_array_equal(prepared, model.prepare(expected))
+            assert ((prepared > 0) & (prepared < 1)).any()
+    # Every coverage of a 4x4 block, the tie at 8 of 16 included, rounds as the simulator rounds it.
+    rng = np.random.default_rng(4)
+    counts = rng.integers(0, 17, size=(128, 128))
+    counts[0, :17] = np.arange(17)
+    blocks = np.arange(16) < counts[..., None]
+    blocks = rng.permuted(blocks, axis=-1).reshape(128, 128, 4, 4)
+    full = np.where(blocks.transpose(0, 2, 1, 3).reshape(512, 512), 255, 0).astype(np.uint8)
+    expected = downsample(full[None], coverage=True)[0]
+    np.testing.assert_array_equal(expected, (510 * counts + 16) // 32)
+    np.testing.assert_array_equal(as_simulator_mask(full, coverage=True), expected)
+
+
+@pytest.mark.parametrize("entries, levels", [({}, "binary"), ({"ad.mask_levels": "binary"}, "binary"),
+                                             ({"ad.mask_levels": "coverage"}, "coverage")])
+@pytest.mark.parametrize("kind", ["clip", "streaming"])
+def test_mask_levels_metadata(tmp_path, kind, entries, levels):
+    """ad.mask_levels absent (every model before grey masks) means binary: the node's threshold
+    applies; coverage: the levels are read (no threshold)."""
+    path = build_clip_model(tmp_path / "m.onnx") if kind == "clip" else build_streaming_model(tmp_path)
+    _with_metadata(path, **entries)
+    info = EstimatorModel.load(path).info
+    assert info.mask_levels == levels
+    assert info.mask_threshold == (DEFAULT_THRESHOLD if levels == "binary" else None)
+    assert levels in MASK_LEVELS
+
+
+@pytest.mark.parametrize("value", ["grey", "Coverage", "", "1"])
+def test_an_unknown_mask_levels_value_is_refused_at_load(tmp_path, value):
+    path = build_clip_model(tmp_path / "m.onnx")
+    _with_metadata(path, **{"ad.mask_levels": value})
+    with pytest.raises(ModelError, match=rf"m.onnx: ad.mask_levels is {value!r}, expected one of \('binary', "
+                                         r"'coverage'\); update ad_estimator or re-export"):
+        EstimatorModel.load(path)
+
+
+def test_prepare_reads_levels_only_for_a_coverage_model(tmp_path):
+    """A binary model (the default) still thresholds a camera's full-resolution mask at half coverage;
+    a coverage model keeps the coverage, so the two see different inputs, except on binary 128x128 masks."""
+    binary = EstimatorModel.load(build_clip_model(tmp_path / "b.onnx"))
+    grey_path = build_clip_model(tmp_path / "g.onnx")
+    _with_metadata(grey_path, **{"ad.mask_levels": "coverage"})
+    grey = EstimatorModel.load(grey_path)
+    mask = camera_masks(5)[0]
+    np.testing.assert_array_equal(binary.prepare(mask), binary.prepare(as_simulator_mask(mask)))
+    assert not np.array_equal(grey.prepare(mask), binary.prepare(mask))
+    # On the simulator's own binary 128x128 masks both prepare the same input.
+    np.testing.assert_array_equal(grey.prepare(as_simulator_mask(mask)), binary.prepare(as_simulator_mask(mask)))
 
 
 def test_object_extent_is_the_larger_side_in_the_simulator_mask():
@@ -450,6 +522,91 @@ def test_random_images_either_convert_or_are_rejected(height, width, encoding, s
     except ImageRejected:
         return
     assert mask.shape == (height, width) and mask.dtype == np.uint8 and set(np.unique(mask)) <= {0, 255}
+
+
+def test_mono8_levels_kept_without_threshold():
+    """threshold None (models of grey masks): the levels as they are, row padding dropped."""
+    data = np.array([[0, 1, 127, 128, 254, 255, 7, 7], [255, 64, 0, 200, 3, 129, 7, 7]], np.uint8)
+    mask = image_to_mask(image(2, 6, "mono8", data.tobytes(), step=8), 100, None)
+    assert mask.dtype == np.uint8 and mask.tolist() == data[:, :6].tolist()
+    assert image_to_mask(image(2, 6, "8UC1", data.tobytes(), step=8), 100, None).tolist() == data[:, :6].tolist()
+    # thresholded at the default, the levels are the binary mask
+    binary = image_to_mask(image(2, 6, "mono8", data.tobytes(), step=8), 100)
+    assert np.array_equal(np.where(mask > 127, 255, 0), binary)
+
+
+@pytest.mark.parametrize("bigendian", [False, True])
+def test_mono16_levels_are_scaled_to_8_bit(bigendian):
+    values = np.array([[0, 256, 257, 127 * 257, 128 * 257 - 1, 128 * 257, 200 * 257 + 100, 65535]],
+                      ">u2" if bigendian else "<u2")
+    mask = image_to_mask(image(1, 8, "mono16", values.tobytes(), bigendian=bigendian), 100, None)
+    assert mask.dtype == np.uint8 and mask.tolist() == [[0, 0, 1, 127, 127, 128, 200, 255]]
+    # a mono8 mask stored as mono16 (level * 257, as_mono16 in the training tests) keeps its levels exactly
+    levels = np.arange(256, dtype=np.uint8)[None]
+    wide = (levels.astype("<u2") * 257).astype(">u2" if bigendian else "<u2")
+    assert image_to_mask(image(1, 256, "16UC1", wide.tobytes(), bigendian=bigendian), 256 * 256, None).tolist() == \
+        levels.tolist()
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8", "bgra8"])
+def test_colour_levels_are_the_brightest_channel(encoding):
+    channels = 4 if encoding.endswith("a8") else 3
+    data = np.zeros((1, 3, channels), np.uint8)
+    data[0, 0, 0], data[0, 1, 1], data[0, 1, 2], data[0, 2, 2] = 90, 30, 170, 255
+    if channels == 4:
+        data[0, :, 3] = 250  # alpha is no level
+    assert image_to_mask(image(1, 3, encoding, data.tobytes()), 100, None).tolist() == [[90, 170, 255]]
+
+
+@pytest.mark.parametrize("fields,kind", [
+    (dict(height=100_000, width=100_000, encoding="mono8", step=100_000), "too_large"),
+    (dict(height=1, width=20_000, encoding="mono8", step=20_000), "too_large"),
+    (dict(height=10, width=10, encoding="32FC1", step=40), "encoding"),
+    (dict(height=10, width=10, encoding="rgb8", step=10), "malformed"),
+    (dict(height=0, width=10, encoding="mono8", step=10), "empty"),
+])
+def test_without_threshold_bad_headers_are_still_rejected_before_touching_data(fields, kind):
+    with pytest.raises(ImageRejected) as info:
+        image_to_mask(UntouchableData(is_bigendian=False, **fields), 4096 * 4096, None)
+    assert info.value.kind == kind
+    with pytest.raises(ImageRejected, match="data length"):
+        image_to_mask(image(4, 4, "mono8", bytes(15)), 100, None)
+
+
+@st.composite
+def mostly_valid_images(draw):
+    """Images whose header mostly fits their data (random ones are nearly always rejected), with
+    padded rows, either endianness, and now and then a wrong step, length or encoding."""
+    encoding = draw(st.sampled_from(["mono8", "8UC1", "mono16", "16UC1", "rgb8", "bgra8", "yuv422"]))
+    depth = {"mono16": 2, "16UC1": 2, "rgb8": 3, "bgra8": 4}.get(encoding, 1)
+    height, width = draw(st.integers(1, 12)), draw(st.integers(1, 12))
+    step = width * depth + draw(st.integers(-1, 3))
+    size = max(step, 0) * height + draw(st.sampled_from([0, 0, 0, -1, 5]))
+    data = draw(st.binary(min_size=max(size, 0), max_size=max(size, 0)))
+    return image(height, width, encoding, data, step=step, bigendian=draw(st.booleans()))
+
+
+@settings(max_examples=300, deadline=None)
+@given(mostly_valid_images())
+def test_random_images_give_levels_exactly_when_they_give_a_mask(msg):
+    """Keeping levels rejects exactly what thresholding rejects, for the same reason; 8-bit levels
+    thresholded at 127 are the default mask, 16-bit ones are the value // 257."""
+    try:
+        binary = image_to_mask(msg, 64 * 64)
+    except ImageRejected as rejected:
+        with pytest.raises(ImageRejected) as again:
+            image_to_mask(msg, 64 * 64, None)
+        assert (again.value.kind, str(again.value)) == (rejected.kind, str(rejected))
+        return
+    levels = image_to_mask(msg, 64 * 64, None)
+    assert levels.shape == (msg.height, msg.width) and levels.dtype == np.uint8
+    if msg.encoding in ("mono16", "16UC1"):
+        rows = np.frombuffer(msg.data[: msg.step * msg.height], np.uint8).reshape(msg.height, msg.step)
+        values = np.ascontiguousarray(rows[:, : 2 * msg.width]).view(">u2" if msg.is_bigendian else "<u2")
+        assert np.array_equal(levels, values // 257)
+        assert np.array_equal(binary, np.where(values > 127 * 257, 255, 0))
+    else:
+        assert np.array_equal(np.where(levels > 127, 255, 0), binary)
 
 
 def test_a_model_with_broken_weights_is_refused_at_load(tmp_path):

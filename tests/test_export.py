@@ -17,6 +17,7 @@ from training import engine
 from training.data import resize_masks
 from training.export import export_student, verify_export
 from training.models.student import build_student, frame_encoder_input, student_preset
+from sim_fixtures import write_coverage_bag
 
 
 # A streaming student whose frame encoder also sees N earlier frames is named streaming_previous_N.
@@ -103,3 +104,97 @@ def test_estimator_wrapper_runs_the_export_like_torch(tmp_path, kind):
         expected = [denormalise(n, float(ref["params"][0, i].clamp(0, 1))) for i, n in enumerate(PARAMETER_NAMES)]
         np.testing.assert_allclose(est.raw_parameters, expected, rtol=1e-3)
         assert est.frames_used == len(kept) and out.valid.sum() == len(kept)
+
+
+def _set_mask_levels(path, value: str | None) -> None:
+    """Sets (None: removes) ad.mask_levels in the model file at `path`."""
+    model = onnx.load(str(path))
+    kept = [p for p in model.metadata_props if p.key != "ad.mask_levels"]
+    del model.metadata_props[:]
+    model.metadata_props.extend(kept)
+    if value is not None:
+        model.metadata_props.add(key="ad.mask_levels", value=value)
+    onnx.save(model, str(path))
+
+
+def _probabilities(csv_path) -> np.ndarray:
+    import csv
+
+    with open(csv_path, newline="") as f:
+        return np.array([[float(r[f"p_{c}"]) for c in FAMILIES] for r in csv.DictReader(f)])
+
+
+def test_a_student_of_grey_masks_exports_as_one_and_the_estimator_feeds_it_the_levels(tmp_path, capsys):
+    """Grey masks end to end: `python -m training student --set mask_levels=coverage` trains on the bags'
+    levels (the coverage cache), export records ad.mask_levels, and the estimator's offline runtime
+    (estimate and evaluate, real onnxruntime) gives the model the levels, not thresholded masks: its
+    estimates differ from the same model's on the thresholded bag, which the same weights marked binary
+    reproduce exactly from the grey bag."""
+    from ad_estimator import estimate, evaluate
+    from training import data
+    from training.__main__ import main
+
+    grey_bag, _ = write_coverage_bag(tmp_path / "bags" / "grey", 6, views=1, seed=5)
+    binary_bag, _ = write_coverage_bag(tmp_path / "bags_binary" / "binary", 6, views=1, seed=5, binary=True)
+    cache, run = tmp_path / "cache", tmp_path / "run"
+    assert main(["student", "--bags", str(grey_bag), "--cache", str(cache), "--out", str(run), "--size", "tiny",
+                 "--epochs", "1", "--batch-size", "4", "--val-fraction", "0.2", "--device", "cpu", "--no-progress",
+                 "--kind", "streaming", "--ablation", "none", "--set", "mask_levels=coverage"]) == 0
+    assert sorted(p.name for p in cache.iterdir()) == [data.bag_key(grey_bag) + "-coverage"]  # trained on the levels
+    assert torch.load(run / "best.pt", weights_only=True)["meta"]["config"]["mask_levels"] == "coverage"
+    model_path = tmp_path / "grey" / "student.onnx"
+    assert main(["export", "--checkpoint", str(run / "best.pt"), "--out", str(model_path)]) == 0
+    for path in (model_path, model_path.with_name("student.frame.onnx")):
+        meta = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+        assert meta["ad.mask_levels"] == "coverage", path
+    info = EstimatorModel.load(model_path).info
+    assert (info.mask_levels, info.mask_threshold) == ("coverage", None)
+    # The same weights, marked binary (no ad.mask_levels, as every export before grey masks).
+    twin = tmp_path / "twin" / "student.onnx"
+    twin.parent.mkdir()
+    for name in ("student.onnx", "student.frame.onnx"):
+        (twin.parent / name).write_bytes((model_path.parent / name).read_bytes())
+        _set_mask_levels(twin.parent / name, None)
+    assert EstimatorModel.load(twin).info.mask_levels == "binary"
+
+    def estimates(model, bag, name):
+        assert estimate.main(["--model", str(model), "--quiet", str(bag), "--out", str(tmp_path / name)]) == 0
+        return _probabilities(tmp_path / name)
+
+    grey = estimates(model_path, grey_bag, "grey.csv")
+    on_thresholded = estimates(model_path, binary_bag, "thresholded.csv")
+    assert grey.shape == (6, 3)
+    # (1 epoch: near-uniform probabilities, so the levels move them by ~1e-5; no episode gets the same)
+    assert (np.abs(grey - on_thresholded).max(axis=1) > 1e-6).all(), "the coverage model was given thresholded masks"
+    np.testing.assert_array_equal(estimates(twin, grey_bag, "twin.csv"), on_thresholded)
+    # evaluate (the offline benchmark) and training's evaluate (from its coverage cache) read the levels too.
+    assert evaluate.main(["--model", str(model_path), "--bags", str(grey_bag), "--quiet",
+                          "--out", str(tmp_path / "ev")]) == 0
+    evaluated = json.loads((tmp_path / "ev" / "predictions.json").read_text())["frames"]["25"]
+    np.testing.assert_allclose([e["probabilities"] for e in evaluated], grey, rtol=1e-6)
+    assert main(["evaluate", "--model", str(model_path), "--bags", str(grey_bag), "--cache", str(tmp_path / "cache2"),
+                 "--out", str(tmp_path / "tev"), "--frames", "25", "--no-record", "--no-progress"]) == 0
+    assert sorted(p.name for p in (tmp_path / "cache2").iterdir()) == [data.bag_key(grey_bag) + "-coverage"]
+    trained = json.loads((tmp_path / "tev" / "predictions.json").read_text())["frames"]["25"]
+    np.testing.assert_allclose([e["probabilities"] for e in trained], grey, rtol=1e-5)
+    capsys.readouterr()
+
+
+def test_only_a_coverage_student_records_mask_levels(tmp_path):
+    """ad.mask_levels is written for coverage students only: absent means binary, so an estimator from
+    before grey masks still loads every binary export."""
+    ckpt, _ = _checkpoint(tmp_path, "streaming")
+    export_student(ckpt, tmp_path / "b" / "student.onnx")
+    meta = {p.key: p.value for p in onnx.load(str(tmp_path / "b" / "student.onnx")).metadata_props}
+    assert "ad.mask_levels" not in meta
+    state = torch.load(ckpt, weights_only=False)
+    state["meta"]["config"]["mask_levels"] = "coverage"
+    engine.save_checkpoint(tmp_path / "grey.pt", state)
+    export_student(tmp_path / "grey.pt", tmp_path / "g" / "student.onnx")
+    model = EstimatorModel.load(tmp_path / "g" / "student.onnx")
+    assert model.info.mask_levels == "coverage"
+    # A checkpoint whose config names other levels is refused, naming them.
+    state["meta"]["config"]["mask_levels"] = "grey"
+    engine.save_checkpoint(tmp_path / "bad.pt", state)
+    with pytest.raises(ValueError, match="mask_levels is one of binary, coverage, got 'grey'"):
+        export_student(tmp_path / "bad.pt", tmp_path / "x" / "student.onnx")

@@ -9,11 +9,13 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from ros_procs import ADRUN, REPO_ROOT
+from sim_fixtures import as_plain
 
 from ad_sim import messages
 from ad_sim.generate import DONE_MARKER, main, parse_shard
@@ -148,6 +150,67 @@ def test_rerun_with_other_settings_is_refused_and_keeps_the_bag(tmp_path, capsys
     err = capsys.readouterr().err
     assert f"warning: {shard} records no settings (an older version wrote it), so it is taken as done" in err, err
     assert "already done, skipped" in err
+
+
+def shard_masks(shard):
+    """{(episode_id, stamp): mono8 pixels} of every mask frame of a bag folder."""
+    out = {}
+    for episode in group_episodes(BagReader(shard)):
+        for topic, frames in episode.messages.items():
+            if topic.endswith("/mask"):
+                for stamp, image in frames:
+                    assert image.encoding == "mono8" and (image.height, image.width) == (128, 128)
+                    out[episode.instance.episode_id, topic, stamp] = np.frombuffer(bytes(image.data), np.uint8)
+    return out
+
+
+@pytest.mark.ros
+def test_coverage_masks_are_grey_threshold_to_the_binary_masks_and_are_a_setting(tmp_path, capsys):
+    args = ["--quiet", "--size", "tiny", "--split", "unseen", "--skip-particles", "--limit", "1"]
+    binary, grey = tmp_path / "binary", tmp_path / "grey"
+    assert main([*args, "--out", str(binary)]) == 0
+    assert main([*args, "--coverage-masks", "--out", str(grey)]) == 0
+    capsys.readouterr()
+    binary_shard, grey_shard = binary / "unseen-0of1", grey / "unseen-0of1"
+    assert digests(binary_shard) != digests(grey_shard)
+    binary_masks, grey_masks = shard_masks(binary_shard), shard_masks(grey_shard)
+    assert len(binary_masks) == 25 and binary_masks.keys() == grey_masks.keys()  # the same episode, frames and stamps
+    levels = set()
+    for key, mask in binary_masks.items():
+        assert set(np.unique(mask)) <= {0, 255}
+        np.testing.assert_array_equal(grey_masks[key] > 127, mask == 255, err_msg=str(key))
+        levels |= set(np.unique(grey_masks[key]).tolist())
+    assert len(levels - {0, 255}) > 10  # grey edges, of many coverages
+    # Only the masks differ: the ground truth and camera messages are the same.
+    for a, b in zip(group_episodes(BagReader(binary_shard)), group_episodes(BagReader(grey_shard))):
+        assert as_plain(a.instance) == as_plain(b.instance)
+        assert as_plain(a.messages["/ad_sim/view_0/camera_info"]) == as_plain(b.messages["/ad_sim/view_0/camera_info"])
+    # The markers and the bags' metadata say which masks they hold (absent: binary, as before the option).
+    settings = {name: json.loads((shard / DONE_MARKER).read_text())["settings"]
+                for name, shard in (("binary", binary_shard), ("grey", grey_shard))}
+    assert "masks" not in settings["binary"] and settings["grey"]["masks"] == "coverage"
+    assert {k: v for k, v in settings["grey"].items() if k != "masks"} == settings["binary"]
+    custom = {name: yaml.safe_load((shard / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
+              for name, shard in (("binary", binary_shard), ("grey", grey_shard))}
+    assert "masks" not in custom["binary"] and custom["grey"]["masks"] == "coverage"
+    before = {shard: digests(shard) for shard in (binary_shard, grey_shard)}
+    # The same request again: done; the other kind of masks into either folder: refused, naming masks.
+    for out, same, other in ((binary, [], ["--coverage-masks"]), (grey, ["--coverage-masks"], [])):
+        assert main([*args, *same, "--out", str(out)]) == 0
+        assert "already done, skipped" in capsys.readouterr().err
+        assert main([*args, *other, "--out", str(out)]) == 1
+        error = capsys.readouterr().err
+        assert f"{out / 'unseen-0of1'} was written with other settings (masks); delete it or choose another --out" \
+            in error, error
+    assert {shard: digests(shard) for shard in before} == before  # both bags left as they were
+    # A marker with settings but no masks key (every marker before the option) matches a default request.
+    marker = json.loads((grey_shard / DONE_MARKER).read_text())
+    marker["settings"].pop("masks")
+    (grey_shard / DONE_MARKER).write_text(json.dumps(marker))
+    assert main([*args, "--out", str(grey)]) == 0
+    assert "already done, skipped" in capsys.readouterr().err
+    assert main([*args, "--coverage-masks", "--out", str(grey)]) == 1
+    assert "other settings (masks)" in capsys.readouterr().err
 
 
 @pytest.mark.ros

@@ -75,6 +75,52 @@ def test_downsample_is_block_mean_threshold_half():
     np.testing.assert_array_equal(small, np.where(blocks >= 0.5, 255, 0))
 
 
+def test_coverage_downsample_is_block_mean_rounded_half_up():
+    """Grey masks (generate --coverage-masks): each pixel is its block's coverage as 0..255, rounded
+    half up, and > 127 exactly where the binary downsample puts the object (the tie, 8 of 16, included)."""
+    rng = np.random.default_rng(11)
+    # Each 4x4 block its own density, so that every count 0..16 of covered pixels occurs; any non-zero
+    # value is covered, as the kernel counts them.
+    density = np.kron(rng.uniform(size=(3, 128, 128)), np.ones((1, 4, 4)))
+    full = np.where(rng.uniform(size=(3, FULL, FULL)) < density, rng.integers(1, 256, size=(3, FULL, FULL)), 0)
+    full = full.astype(np.uint8)
+    grey = render.downsample(full, coverage=True)
+    binary = render.downsample(full)
+    counts = (full > 0).reshape(3, 128, 4, 128, 4).sum(axis=(2, 4))
+    assert set(np.unique(counts)) == set(range(17))
+    # floor(mean * 255 + 1/2): exact in float64, mean being k/16
+    np.testing.assert_array_equal(grey, np.floor(counts / 16 * 255 + 0.5).astype(np.uint8))
+    assert grey.dtype == np.uint8 and grey.shape == binary.shape == (3, 128, 128)
+    assert set(np.unique(grey[counts == 8])) == {128} and set(np.unique(grey[counts == 7])) == {112}
+    np.testing.assert_array_equal(grey > 127, binary == 255)
+    np.testing.assert_array_equal(np.where(grey > 127, 255, 0), binary)
+    # Other factors too (render_masks takes one).
+    small = render.downsample(full[:, :64, :96], factor=2, coverage=True)
+    pairs = (full[:, :64, :96] > 0).reshape(3, 32, 2, 48, 2).sum(axis=(2, 4))
+    np.testing.assert_array_equal(small, np.floor(pairs / 4 * 255 + 0.5).astype(np.uint8))
+
+
+def test_render_masks_with_coverage_have_grey_edges_that_threshold_to_the_binary_render():
+    rng = np.random.default_rng(3)
+    meshes = [trimesh.creation.icosphere(subdivisions=2, radius=0.15), trimesh.creation.box(extents=[0.2, 0.3, 0.1])]
+    vertex_sets = [m.vertices + rng.uniform(0.3, 0.7, size=3) for m in meshes]
+    cameras = render.sample_cameras(rng, 2, FULL, FULL)
+    jobs = [RenderJob(v, v, c.projection()) for v in range(2) for c in cameras]
+    binary, binary_full = render.render_masks(vertex_sets, [m.faces for m in meshes], jobs, full=True)
+    grey, grey_full = render.render_masks(vertex_sets, [m.faces for m in meshes], jobs, full=True, coverage=True)
+    np.testing.assert_array_equal(grey_full, binary_full)  # the same silhouettes, only downsampled otherwise
+    np.testing.assert_array_equal(grey, render.downsample(grey_full, coverage=True))
+    np.testing.assert_array_equal(grey > 127, binary == 255)
+    for mask, full in zip(grey, grey_full):
+        edge = (mask > 0) & (mask < 255)
+        assert edge.any() and (mask == 255).any()
+        # grey pixels are the partly covered blocks: the edge, never the inside or the background
+        blocks = (full > 0).reshape(128, 4, 128, 4).mean(axis=(1, 3))
+        np.testing.assert_array_equal(edge, (blocks > 0) & (blocks < 1))
+    # Without the option the render is binary, as before.
+    assert set(np.unique(binary)) == {0, 255}
+
+
 def test_resized_camera_keeps_pixel_edges():
     camera = render.sample_cameras(np.random.default_rng(1), 1)[0]
     big = camera.resized(FULL, FULL)

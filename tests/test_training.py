@@ -186,6 +186,21 @@ def test_set_overrides_config_fields_and_rejects_bad_ones(bags, tmp_path):
     assert not (tmp_path / "bad").exists(), "a bad --set fails before anything is written"
 
 
+def test_mask_levels_are_checked_before_anything_is_written(bags, tmp_path):
+    """--set mask_levels takes binary (the default) or coverage (grey masks) only; another value fails
+    before any data is cached or any run folder made."""
+    assert StudentConfig().mask_levels == "binary"
+    assert StudentConfig.from_dict({**student_preset("streaming", "tiny", 32).to_dict(), "mask_levels": "coverage"}
+                                   ).mask_levels == "coverage"
+    for bad in ("grey", "Coverage", ""):
+        with pytest.raises(ValueError, match=f"mask_levels is one of binary, coverage, got {bad!r}"):
+            StudentConfig(mask_levels=bad)
+        with pytest.raises(SystemExit, match=f"mask_levels is one of binary, coverage, got {bad!r}"):
+            run_student(_args(bags, tmp_path / "bad", tmp_path / "cache", epochs=1, kind="streaming", ablation="none",
+                              alpha=0.5, full_clips=False, set=[f"mask_levels={bad}"]))
+    assert not (tmp_path / "bad").exists() and not (tmp_path / "cache").exists()
+
+
 def test_best_checkpoint_is_the_epoch_with_the_lowest_selected_validation_metric(bags, tmp_path):
     chosen = {}
     for select in ("score", "regl1"):

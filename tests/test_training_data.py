@@ -10,6 +10,7 @@ from ad_sim.materials import FAMILIES, PARAMETER_NAMES, normalise
 from ad_sim.rosbag import BagWriter, qos_profile
 from training import data
 from training.synthetic import synthetic_episode, write_synthetic_bag
+from sim_fixtures import thresholded, write_coverage_bag
 
 
 @pytest.fixture(scope="module")
@@ -64,6 +65,42 @@ def test_cache_is_reused_and_keyed_by_content(bags, tmp_path, monkeypatch):
     assert len(keys) == 2
     other = write_synthetic_bag(tmp_path / "other", 4, views=2, seed=4)
     assert data.bag_key(other) not in keys
+
+
+def test_coverage_videos_keep_grey_levels_in_their_own_cache(tmp_path, monkeypatch):
+    """Bags of grey masks (generate --coverage-masks): load_dataset(coverage=True) keeps the levels in a
+    `<key>-coverage` cache folder; the default load of the same bags reads them thresholded, as every
+    consumer that thresholds does, in the bag's usual folder; the labels are the same."""
+    bag, episodes = write_coverage_bag(tmp_path / "bags" / "grey", 4, views=2, seed=6)
+    cache = tmp_path / "cache"
+    grey = data.load_dataset(tmp_path / "bags", cache, progress=False, coverage=True)
+    binary = data.load_dataset(tmp_path / "bags", cache, progress=False)
+    key = data.bag_key(bag)
+    assert sorted(p.name for p in cache.iterdir()) == [key, key + "-coverage"]
+    assert [s.name for s in grey.shards] == [key + "-coverage"] and [s.name for s in binary.shards] == [key]
+    assert grey.episode_ids == binary.episode_ids == [e.instance.episode_id for e in episodes]
+    for name in ("labels", "params_si", "params_norm", "param_mask", "video_instance", "video_view"):
+        np.testing.assert_array_equal(getattr(grey, name), getattr(binary, name), err_msg=name)
+    np.testing.assert_array_equal(grey.trajectory(1), binary.trajectory(1))
+    greys = 0
+    for i, episode in enumerate(episodes):
+        for view in range(2):
+            (j,) = np.flatnonzero((grey.video_instance == i) & (grey.video_view == view))
+            np.testing.assert_array_equal(grey.video(j), episode.masks[view])
+            np.testing.assert_array_equal(binary.video(j), thresholded(episode.masks[view]))
+            greys += int(((grey.video(j) > 0) & (grey.video(j) < 255)).sum())
+    assert greys > 1000
+    # Each cache is reused by the load that made it, not re-decoded nor mixed up with the other.
+    monkeypatch.setattr(data, "read_bag", lambda *args: pytest.fail(f"re-decoded cached bag {args}"))
+    assert data.load_dataset(tmp_path / "bags", cache, progress=False, coverage=True).shards == grey.shards
+    assert data.load_dataset(tmp_path / "bags", cache, progress=False).shards == binary.shards
+    # A student's resized frames come from the grey videos, in the coverage folder.
+    frames = data.resized_videos(grey, (32, 32))
+    assert (cache / (key + "-coverage") / "videos_32x32.npy").exists()
+    import cv2
+
+    expected = np.stack([cv2.resize(f, (32, 32), interpolation=cv2.INTER_AREA) for f in grey.video(0)]) / 255.0
+    np.testing.assert_allclose(np.asarray(frames[0][0], np.float32), expected, atol=1e-3)
 
 
 def write_edited_bag(path, episodes, edit, **writer_options) -> None:

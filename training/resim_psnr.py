@@ -109,8 +109,9 @@ def model_psnr(model_path: str | Path, bags: str | Path, device: str = "cpu", co
 
     model = EstimatorModel.load(model_path)
     episodes = selected_episodes(bags, count, seed)
-    estimates = [predict_episode(model, bag, msg, frames, model.info.frame_count, masks=list(video))
-                 for bag, msg, frames, video in episodes]
+    # The frames converted as the model reads them (a coverage model keeps grey levels); the PSNR
+    # compares binary masks, as re-simulation renders them.
+    estimates = [predict_episode(model, bag, msg, frames, model.info.frame_count) for bag, msg, frames, _ in episodes]
     predictions = to_metrics(estimates, model.info.parameter_names)
     instances = [instance_of(msg) for _, msg, _, _ in episodes]
     candidates = [candidate_from_row(FAMILIES[c], row)
