@@ -227,11 +227,18 @@ SECTION_14 = {"unseen, `h3reg2`, seed 0 (**shipped**)": SHIPPED_SEED_0["unseen, 
 } | {"unseen, `t30_s0` (1x: 9,000 instances, 20 epochs, section 11)": "experiments/long_teacher/t30_s0_unseen.json",
      "unseen, `t30_s1` (1x, seed 1, section 11)": "experiments/long_teacher/t30_s1_unseen.json"}
 
+# docs/results/paper/experiments/README.md, section 15: grey masks, against section 8's binary runs
+GREY_RUNS = {"grey_s0": "grey masks, none, seed 0", "grey_s1": "grey masks, none, seed 1"}
+SECTION_15 = {"unseen, `h3reg2`, seed 0 (**shipped**)": SHIPPED_SEED_0["unseen, `h3reg2`, seed 0 (**shipped**)"],
+              "unseen, `h3reg2`, none (binary masks, section 8)": "ablation_earlier3_reg2_none_20ep_unseen.json"} | {
+    f"unseen, `{run}` ({what})": f"experiments/grey_masks/{run}_unseen.json" for run, what in GREY_RUNS.items()}
+
 
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
                                                    ("## 7. ", SECTION_7), ("## 8. ", SECTION_8), ("## 9. ", SECTION_9),
                                                    ("## 10. ", SECTION_10), ("## 11. ", SECTION_11),
-                                                   ("## 13. ", SECTION_13), ("## 14. ", SECTION_14)])
+                                                   ("## 13. ", SECTION_13), ("## 14. ", SECTION_14),
+                                                   ("## 15. ", SECTION_15)])
 def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
     for label, file in rows_to_files.items():
@@ -388,3 +395,15 @@ def test_experiments_section_14_fit_table_is_the_histories():
         assert rows[f"`{run}`"] == [str(len(history)), str(best["epoch"])] + [f"{v:.3f}" for v in (
             last["train_regl1"], last["train_ce"], best["val_regl1"], min(r["val_regl1"] for r in history),
             best["val_ce"], last["val_ce"], unseen["regl1"])], run
+
+
+def test_experiments_section_15_fit_table_is_the_histories():
+    """Section 15: each grey run's selected epoch (SPEC's score), its validation figures there, its lowest
+    validation RegL1 and its training RegL1 at the last epoch are its history's."""
+    rows = section_rows(15)
+    for run in GREY_RUNS:
+        history = epoch_rows(f"grey_masks/{run}.history.json")
+        best, last = min(history, key=lambda r: r["val_score"]), history[-1]
+        assert len(history) == 20, run
+        assert rows[f"`{run}`"] == [f"epoch {best['epoch']}"] + [f"{v:.3f}" for v in (
+            best["val_acc"], best["val_regl1"], min(r["val_regl1"] for r in history), last["train_regl1"])], run
