@@ -213,6 +213,34 @@ def test_replay_loop_plays_the_bag_again_until_stopped(test_bag, ros_domain_id):
     assert proc.returncode == 0 and re.search(r"replay: stopped after \d+ messages from ", out), out
 
 
+def test_replay_clock_publishes_the_bags_time_for_use_sim_time_nodes(test_bag, ros_domain_id):
+    """--clock: /clock carries each message's log time (rclpy's time source, best effort, reads it), never
+    going back within a pass; a node with use_sim_time ends on the bag's time. Without it there is no /clock."""
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+
+    log_times = sorted({log_time for _, log_time, _ in BagReader(test_bag, raw=True)})
+    with ros_context(ros_domain_id) as (context, executor):
+        node = Node("clock_listener", context=context,
+                    parameter_overrides=[Parameter("use_sim_time", Parameter.Type.BOOL, True)])
+        clocks = []
+        node.create_subscription(Clock, "/clock", lambda m: clocks.append(stamp_ns(m.clock)),
+                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
+        executor.add_node(node)
+        proc = run("ad_estimator.replay", str(test_bag), "--rate", "4", "--quiet", "--clock", "--wait-for", MASK_TOPIC)
+        node.create_subscription(Image, MASK_TOPIC, lambda m: None, RELIABLE)  # what --wait-for waits for
+        out, _ = proc.communicate(timeout=60)
+        assert proc.returncode == 0, out
+        assert wait_for(lambda: node.get_clock().now().nanoseconds == log_times[-1], timeout=5), (
+            node.get_clock().now().nanoseconds, log_times[-1])
+        without = run("ad_estimator.replay", str(test_bag), "--rate", "4", "--quiet", "--wait-for", MASK_TOPIC)
+        assert wait_for(lambda: node.count_publishers(MASK_TOPIC) > 0, timeout=30)
+        assert node.count_publishers("/clock") == 0
+        without.communicate(timeout=60)
+    assert clocks == sorted(clocks) and set(clocks) <= set(log_times), clocks
+    assert len(clocks) >= len(log_times) // 2, (len(clocks), len(log_times))  # best effort: most, on one machine
+
+
 def live_and_offline_inputs(tmp_path):
     """The committed sample bags and the bundled model when they exist, else a written bag and test model."""
     bags = sorted(p.parent for p in SAMPLES.glob("*/metadata.yaml"))

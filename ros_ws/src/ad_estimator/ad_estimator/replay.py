@@ -3,7 +3,9 @@
 For machines without rosbag2. Messages go out as the recorded CDR bytes (rclpy publishes
 serialized bytes as they are), so stamps and content are exactly the bag's. Each topic is
 published with the QoS it was recorded with (offered_qos_profiles in metadata.yaml; ground truth
-transient local), pacing follows the log times divided by --rate.
+transient local), pacing follows the log times divided by --rate. With --clock, /clock carries the
+bag's time (each message's log time, before the message), as `ros2 bag play --clock` does, for
+nodes run with use_sim_time.
 """
 from __future__ import annotations
 
@@ -17,6 +19,8 @@ from pathlib import Path
 
 import rclpy
 import yaml
+from builtin_interfaces.msg import Time
+from rosgraph_msgs.msg import Clock
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
@@ -79,13 +83,20 @@ def recorded_topics(reader: BagReader) -> dict[str, tuple[str, QoSProfile]]:
 class Replayer:
     """Publishers for a bag's topics and the paced publishing loop."""
 
-    def __init__(self, node: Node, bag: Path, topics: list[str] | None = None, recover: bool = False):
+    def __init__(self, node: Node, bag: Path, topics: list[str] | None = None, recover: bool = False,
+                 clock: bool = False):
         self.node = node
         self.reader = BagReader(bag, raw=True, topics=topics, recover=recover)
         available = recorded_topics(self.reader)
         wanted = topics or sorted(available)
         if missing := [t for t in wanted if t not in available]:
             raise BagError(f"bag {bag} has no topic(s) {missing}; it has {sorted(available)}")
+        if clock and "/clock" in wanted:
+            raise BagError(f"bag {bag} holds /clock itself; replay it as recorded, without --clock")
+        # rclpy's and rclcpp's time sources subscribe best effort with depth 1
+        self.clock = node.create_publisher(Clock, "/clock", QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)) if clock else None
+        self.last_clock = None
         self.publishers = {t: node.create_publisher(message_class(available[t][0]), t, available[t][1])
                            for t in wanted}
         self.total = sum(e["message_count"] for e in (self.reader.metadata or {}).get("topics_with_message_count", [])
@@ -119,6 +130,9 @@ class Replayer:
                     time.sleep(delay)
                 if not rclpy.ok(context=self.node.context):
                     break
+                if self.clock is not None and log_time != self.last_clock:  # the time first, then what happened at it
+                    self.clock.publish(Clock(clock=Time(sec=log_time // 10**9, nanosec=log_time % 10**9)))
+                    self.last_clock = log_time
                 self.publishers[topic].publish(bytes(data))
                 self.published += 1
                 bar.update()
@@ -149,6 +163,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--loop", action="store_true",
                         help="play the bag again each time it ends, until stopped (Ctrl-C); its stamps start over "
                              "too, which the estimator takes as a new episode")
+    parser.add_argument("--clock", action="store_true",
+                        help="publish the bag's time on /clock (each message's log time, before the message), for "
+                             "nodes run with use_sim_time; with --loop it goes back at each pass")
     parser.add_argument("--recover", action="store_true",
                         help="play truncated or damaged files (a killed recorder) up to their last complete chunk")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -171,7 +188,7 @@ def main(args=None) -> int:
     node = replayer = None
     try:
         node = Node("ad_replay")
-        replayer = Replayer(node, options.bag, options.topics, options.recover)
+        replayer = Replayer(node, options.bag, options.topics, options.recover, options.clock)
         replayer.wait_for_subscribers(options.wait_for, options.wait_timeout)
         time.sleep(options.delay)
         count = replayer.run(options.rate, progress=not options.quiet)
