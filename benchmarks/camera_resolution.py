@@ -9,7 +9,10 @@ they came from, estimates each instance from the 128x128 masks, the 512x512 rend
 them, two framings with the object larger and smaller than in training, and the renders with their
 boundary moved out or in by 2 px (a biased segmenter), and the simulator's masks with frames lost,
 through the estimator's runtime. It reports the paper table for each camera and how close its estimates are to
-those from the simulator's masks.
+those from the simulator's masks. A model of grey masks (ad.mask_levels coverage) gets the simulator's grey
+masks (generate --coverage-masks) for the 128x128 reference and the lost-frame cameras, as it was trained on
+them; the full-resolution cameras stay binary, as a segmenter's masks are, and the estimator takes their area
+coverage.
 
     python benchmarks/camera_resolution.py --instances 4              # CPU, about 20 s
     python benchmarks/camera_resolution.py --instances 100 --device cuda --json out.json
@@ -66,7 +69,11 @@ def main(argv=None) -> int:
     model = load_model(p, args.model)
     chosen = drawn_per_family(args.size, "unseen", args.instances, args.seed)
     print(f"simulating {len(chosen)} episodes on {args.device}", file=sys.stderr)
-    episodes = simulate_batch(chosen, device=args.device, full_masks=True, views=1, progress=True)
+    # The 128x128 masks as the model was trained on them: 0/255, or each pixel's area coverage of the
+    # render for a model of grey masks (the render itself stays binary: the full-resolution cameras).
+    coverage = model.info.mask_levels == "coverage"
+    episodes = simulate_batch(chosen, device=args.device, full_masks=True, views=1, progress=True,
+                              coverage_masks=coverage)
 
     # Each camera's masks of an episode (view 0). The 4:3 camera is the 512x512 render without its top
     # and bottom 64 rows: what a 640x480-style sensor with the same horizontal view would see.
@@ -128,7 +135,8 @@ def main(argv=None) -> int:
           + "; ".join(f"{camera}: {100 * share:.2f}%" for camera, share in outside.items()))
     if args.json:
         setup = {"instances_per_family": args.instances, "size": args.size, "seed": args.seed, "device": args.device,
-                 "model_id": model.model_id, "episodes": [i.episode_id for i in chosen]}
+                 "model_id": model.model_id, "mask_levels": model.info.mask_levels,
+                 "episodes": [i.episode_id for i in chosen]}
         args.json.write_text(json_text({"results": results, "against_simulator_masks": against,
                                         "object_pixels_out_of_view": outside, "setup": setup}))
     return 0

@@ -120,9 +120,11 @@ def build_clip_model(path: Path, input_size=(32, 32), frame_count: int = 25, dim
 
 
 def build_streaming_model(directory: Path, name: str = "student", input_size=(32, 32), frame_count: int = 25,
-                          dim: int = 16, seed: int = 0, model_id: str = "test-streaming", previous_frames: int = 0) -> Path:
+                          dim: int = 16, seed: int = 0, model_id: str = "test-streaming", previous_frames: int = 0,
+                          mask_levels: str | None = None) -> Path:
     """``<name>.frame.onnx`` (frame -> embedding) and ``<name>.onnx`` (temporal head); returns the head's path.
-    The frame encoder takes the mask and ``previous_frames`` earlier ones as channels."""
+    The frame encoder takes the mask and ``previous_frames`` earlier ones as channels. ``mask_levels``:
+    ad.mask_levels to record ("coverage": a model of grey masks; None: none, which means binary)."""
     rng = np.random.default_rng(seed)
     h, w = input_size
     channels = 1 + previous_frames
@@ -130,6 +132,8 @@ def build_streaming_model(directory: Path, name: str = "student", input_size=(32
     meta = metadata("streaming", model_id, input_size, frame_count, frame_file)
     if previous_frames:
         meta["ad.frame_inputs"] = json.dumps(frame_inputs(previous_frames))
+    if mask_levels is not None:
+        meta["ad.mask_levels"] = mask_levels
     encoder = helper.make_graph(
         [helper.make_node("Flatten", ["frame"], ["flat"], axis=1),
          helper.make_node("MatMul", ["flat", "w_frame"], ["frame_mm"]),

@@ -17,14 +17,19 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rcl_interfaces.srv import SetParameters
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
+from ad_estimator import estimate
 from ad_estimator.model import EstimatorModel
 from ad_estimator.node import EstimatorNode
+from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS
 from ad_estimator.window import FrameWindow
+from ad_sim.rosbag import BagReader
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
 from estimator_ros import image_msg, ros_context, wait_for
+from sim_fixtures import write_coverage_bag
 
 pytestmark = pytest.mark.ros
 DT = 25_000_000
@@ -226,6 +231,60 @@ def test_streams_and_clips_reach_the_frame_encoder_with_their_earlier_frames(ros
     future = client.call_async(EstimateMaterial.Request(frames=[image_msg(m, 0) for m in masks]))
     assert wait_for(future.done) and future.result().success, future.result().message
     np.testing.assert_allclose(future.result().estimate.class_probabilities, expected.probabilities, rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def grey_masks(tmp_path_factory):
+    """A streaming model of grey masks (ad.mask_levels coverage; onnx.helper, no torch) and two bags of
+    the same two episodes: their masks grey (generate --coverage-masks) and those masks thresholded."""
+    d = tmp_path_factory.mktemp("grey_masks")
+    model = build_streaming_model(d, model_id="test-coverage", mask_levels="coverage")
+    grey, _ = write_coverage_bag(d / "grey", 2, seed=3)
+    binary, _ = write_coverage_bag(d / "binary", 2, seed=3, binary=True)
+    return types.SimpleNamespace(model=model, grey=grey, binary=binary)
+
+
+def test_a_model_of_grey_masks_is_fed_their_levels_from_the_topic_and_the_service(ros, grey_masks):
+    """The recorded grey frames, published as they are on the node's mask topic, give the estimates that
+    `ros2 run ad_estimator estimate` (offline) computes from the bag, not those of the thresholded
+    frames; the ~/estimate service answers the first episode's clip with the same estimate."""
+    model = EstimatorModel.load(grey_masks.model)
+    assert model.info.mask_levels == "coverage"
+    values = {name: PARAMETERS[name][0] for name in estimate.OPTIONS}  # the node's defaults, as estimate's
+    offline = estimate.estimate_bag(model, grey_masks.grey, DEFAULT_INPUT_TOPIC, values)
+    thresholded = estimate.estimate_bag(model, grey_masks.binary, DEFAULT_INPUT_TOPIC, values)
+    assert len(offline) == len(thresholded) == 2 and all(r.output.complete for r in offline)
+    frames = [data for _, _, data in BagReader(grey_masks.grey, raw=True, topics=[DEFAULT_INPUT_TOPIC])]
+    assert len(frames) == 50
+    t = start(ros, grey_masks.model)
+    for data in frames:
+        t.publisher.publish(bytes(data))  # the recorded CDR: the frames as the bag holds them
+    assert wait_for(lambda: len(t.estimates) >= 2)
+    time.sleep(0.3)
+    assert len(t.estimates) == 2
+    stats = t.node.statistics()
+    assert (stats["received"], stats["processed"], stats["rejected"], stats["errors"]) == (50, 50, 0, 0)
+    for msg, row, other in zip(t.estimates, offline, thresholded):
+        assert msg.complete and msg.frames_used == 25 and msg.model_id == "test-coverage"
+        assert stamp_ns(msg.oldest_stamp) == row.output.oldest_stamp_ns == other.output.oldest_stamp_ns
+        expected = row.estimate
+        assert msg.material == expected.material
+        np.testing.assert_allclose(msg.class_probabilities, expected.probabilities, rtol=1e-6)
+        np.testing.assert_allclose(msg.parameters, expected.parameters, rtol=1e-6)
+        np.testing.assert_allclose(msg.parameter_uncertainties, expected.uncertainties, rtol=1e-6)
+        # Thresholded, the same frames would give another estimate: the node read the levels.
+        assert np.abs(np.subtract(msg.class_probabilities, other.estimate.probabilities)).max() > 1e-3
+    client = t.client.create_client(EstimateMaterial, "/ad_estimator/estimate")
+    assert client.wait_for_service(timeout_sec=5)
+    clip = [deserialize_message(bytes(data), Image) for data in frames[:25]]
+    levels = np.frombuffer(b"".join(bytes(image.data) for image in clip), np.uint8)
+    assert ((levels > 0) & (levels < 255)).sum() > 1000  # grey frames indeed
+    future = client.call_async(EstimateMaterial.Request(frames=clip))
+    assert wait_for(future.done) and future.result().success, future.result().message
+    answer = future.result().estimate
+    assert answer.complete and answer.frames_used == 25
+    np.testing.assert_allclose(answer.class_probabilities, offline[0].estimate.probabilities, rtol=1e-6)
+    np.testing.assert_allclose(answer.parameters, offline[0].estimate.parameters, rtol=1e-6)
 
 
 def test_diagnostics(ros, model_paths):

@@ -118,6 +118,32 @@ def write_edited_bag(path, episodes, edit, **writer_options) -> None:
                 writer.write(topic, stamp, msg)
 
 
+def test_the_cache_command_builds_the_grey_mask_cache_with_coverage(tmp_path, monkeypatch, capsys):
+    """`python -m training cache --coverage` builds what a student of grey masks (mask_levels=coverage)
+    and evaluate load (load_dataset(coverage=True)): the `<key>-coverage` folder, with the levels and the
+    resized frames asked for; without the flag, the thresholded cache, as before."""
+    from training.__main__ import main
+
+    bag, episodes = write_coverage_bag(tmp_path / "bags" / "grey", 2, views=1, seed=7)
+    cache, key = tmp_path / "cache", data.bag_key(bag)
+    assert main(["cache", "--bags", str(tmp_path / "bags"), "--cache", str(cache), "--coverage",
+                 "--input-size", "32", "32"]) == 0
+    assert "2 instances" in capsys.readouterr().out
+    assert sorted(p.name for p in cache.iterdir()) == [key + "-coverage"]
+    assert (cache / (key + "-coverage") / "videos_32x32.npy").exists()
+    monkeypatch.setattr(data, "read_bag", lambda *args: pytest.fail(f"re-decoded cached bag {args}"))
+    grey = data.load_dataset(tmp_path / "bags", cache, progress=False, coverage=True)  # what training loads
+    for j, episode in enumerate(episodes):
+        np.testing.assert_array_equal(grey.video(j), episode.masks[0])
+    assert ((grey.video(0) > 0) & (grey.video(0) < 255)).any()
+    monkeypatch.undo()
+    assert main(["cache", "--bags", str(tmp_path / "bags"), "--cache", str(cache)]) == 0
+    assert sorted(p.name for p in cache.iterdir()) == [key, key + "-coverage"]
+    binary = data.load_dataset(tmp_path / "bags", cache, progress=False)
+    np.testing.assert_array_equal(binary.video(0), thresholded(episodes[0].masks[0]))
+    capsys.readouterr()
+
+
 def test_incomplete_episodes_are_skipped(tmp_path):
     """A recording that lost frames of one episode keeps the complete ones."""
     episodes = [synthetic_episode(i, 0, 1) for i in range(3)]

@@ -13,16 +13,21 @@ def _cache_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cache", default=".cache/training", help="array cache folder (keyed by bag content)")
     p.add_argument("--input-size", type=int, nargs=2, metavar=("H", "W"), action="append", default=[],
                    help="also cache the videos resized for a student of this input size (repeatable)")
+    p.add_argument("--coverage", action="store_true",
+                   help="keep the masks' grey levels, for students trained with --set mask_levels=coverage (bags "
+                        "from ad_sim.generate --coverage-masks; cached in a <bag key>-coverage folder beside the "
+                        "thresholded one)")
 
 
 def _cache_run(args) -> None:
     from training import data
 
-    ds = data.load_dataset(args.bags, args.cache)
+    ds = data.load_dataset(args.bags, args.cache, coverage=args.coverage)
     for size in args.input_size:
         data.resized_videos(ds, tuple(size))
     counts = {f: int((ds.labels == i).sum()) for i, f in enumerate(("jelly", "plasticine", "sand"))}
-    print(f"{len(ds)} instances {counts}, {ds.num_videos} videos, {len(ds.shards)} bags cached in {args.cache}")
+    levels = " (grey masks)" if args.coverage else ""
+    print(f"{len(ds)} instances {counts}, {ds.num_videos} videos{levels}, {len(ds.shards)} bags cached in {args.cache}")
 
 
 def main(argv: list[str] | None = None) -> int:
