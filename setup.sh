@@ -98,6 +98,9 @@ build_fingerprint() {
     find . \( -name package.xml -o -name CMakeLists.txt -o -name setup.py -o -name setup.cfg \
               -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -path '*/resource/*' \) -type f -print0 \
         | LC_ALL=C sort -z | xargs -0 sha256sum
+    # Installed data files (launch files, parameter files): the names only, since symlinked ones need no
+    # rebuild when edited, but a new one is installed only by a build.
+    ls -1d -- */launch/* */config/* 2>/dev/null || true
 }
 FINGERPRINT="$(build_fingerprint | sha256sum | cut -d' ' -f1)"
 all_installed() {

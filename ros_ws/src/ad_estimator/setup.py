@@ -25,6 +25,8 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", sorted(str(p.relative_to(HERE)) for p in (HERE / "config").glob("*.yaml"))),
+        # XML launch files (ros2 launch ad_estimator <file>): estimator.launch.xml, sim_estimator.launch.xml
+        (f"share/{PACKAGE}/launch", sorted(str(p.relative_to(HERE)) for p in (HERE / "launch").glob("*.launch.xml"))),
     ],
     install_requires=["setuptools"],
     zip_safe=False,

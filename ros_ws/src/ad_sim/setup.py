@@ -24,6 +24,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
+        # XML launch files (ros2 launch ad_sim <file>): sim.launch.xml
+        (f"share/{PACKAGE}/launch", sorted(str(p.relative_to(HERE)) for p in (HERE / "launch").glob("*.launch.xml"))),
     ],
     install_requires=["setuptools"],
     zip_safe=False,
