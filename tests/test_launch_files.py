@@ -82,8 +82,12 @@ def substitute(text: str, root, overrides: dict[str, str] | None = None) -> str:
 
 
 def typed(text: str):
-    """A <param value> as launch_ros types it: YAML rules, the empty string kept a string."""
-    return text if text == "" else yaml.safe_load(text)
+    """A <param value> as launch_ros types it (launch_ros.utilities.evaluate_parameters): YAML rules, so an
+    empty value loads as None, which it refuses (TypeError); a string that may be empty must be quoted."""
+    value = yaml.safe_load(text)
+    if value is None:
+        raise TypeError(f"launch_ros refuses the parameter value {text!r} (YAML null); quote it: '...'")
+    return value
 
 
 def declared_parameters(package: str, executable: str) -> dict:
@@ -171,6 +175,9 @@ def parameter_problems(root) -> list[str]:
             except KeyError as missing:
                 problems.append(f"{name}: no value for {missing}")
                 continue
+            except TypeError as refused:
+                problems.append(f"{name}: {refused}")
+                continue
             if not same_type(value, declared[name]):
                 problems.append(f"{package} {executable} {name}: {value!r} ({type(value).__name__}), declared "
                                 f"{type(declared[name]).__name__} ({declared[name]!r})")
@@ -218,11 +225,13 @@ def default_problems(root) -> list[str]:
     for node in root.iter("node"):
         declared = declared_parameters(node.get("pkg"), node.get("exec"))
         for param in node.iter("param"):
-            name, match = param.get("name"), re.fullmatch(r"\$\(var (\w+)\)", param.get("value") or "")
-            if not match or name not in declared or match.group(1) not in args:
+            name, match = param.get("name"), re.fullmatch(r"('?)\$\(var (\w+)\)\1", param.get("value") or "")
+            if not match or name not in declared or match.group(2) not in args:
                 continue  # a fixed value, or a problem the other checks report
-            arg = args[match.group(1)]
-            default, own = typed(arg.get("default") or ""), declared[name]
+            arg = args[match.group(2)]
+            # quoted ('$(var X)'): the argument stays a string
+            default = arg.get("default") or "" if match.group(1) else typed(arg.get("default") or "")
+            own = declared[name]
             if not (default == own or (isinstance(own, float) and math.isnan(own) and default != default)):
                 problems.append(f"<arg {arg.get('name')}> default {default!r} is not {node.get('exec')}'s {name} "
                                 f"default {own!r}")
@@ -324,6 +333,8 @@ BROKEN = {
                        "the node takes ['paper', 'small', 'tiny']"),
     "unknown-tag": ("sim.launch.xml", '<arg name="views"', '<argument name="views"', structure_problems,
                     "unknown tag <argument>"),
+    "empty-value-unquoted": ("estimator.launch.xml", 'value="\'$(var model_path)\'"', 'value="$(var model_path)"',
+                             parameter_problems, "launch_ros refuses the parameter value ''"),
 }
 
 
