@@ -109,3 +109,19 @@ def test_preview_contact_sheet(episodes, tmp_path):
     np.testing.assert_array_equal(sheet[y : y + 128, x : x + 128], episodes[0].masks[1, 2])
     help_text = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, check=True).stdout
     assert "--instances" in help_text and "--output" in help_text
+
+
+def test_a_cancelled_simulation_stops_within_a_frame():
+    """simulate_batch(cancelled=...) asks before each simulated frame and raises mpm.Cancelled, so a
+    stopping node's worker leaves Warp at once (sim_node joins it before the interpreter exits)."""
+    from ad_sim.mpm import Cancelled
+
+    asked = []
+
+    def cancelled() -> bool:
+        asked.append(True)
+        return len(asked) > 3
+
+    with pytest.raises(Cancelled, match="cancelled at frame 4"):
+        simulate_batch(benchmark("tiny", "unseen")[:2], frame_count=25, cancelled=cancelled)
+    assert len(asked) == 4

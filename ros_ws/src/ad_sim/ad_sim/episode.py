@@ -142,12 +142,14 @@ def simulate_batch(
     max_batch: int | None = None,
     frame_count: int = FRAME_COUNT,
     coverage_masks: bool = False,
+    cancelled=None,
 ) -> list[Episode]:
     """Simulates and renders the instances; returns their episodes in the same order.
 
     views overrides each instance's number of views; max_batch bounds scenes per solver launch
     (default MAX_BATCH of the device kind); frame_count < 25 is for quick checks only;
-    coverage_masks keeps each mask pixel's area coverage (render.downsample) instead of 0/255.
+    coverage_masks keeps each mask pixel's area coverage (render.downsample) instead of 0/255;
+    cancelled (a callable) ends the work early with mpm.Cancelled (mpm.simulate).
     """
     if max_batch is None:
         max_batch = MAX_BATCH["cuda" if str(device).startswith("cuda") else "cpu"]
@@ -164,7 +166,7 @@ def simulate_batch(
     for group in groups:
         members = [prepared[i] for i in group]
         _track(members, device)
-        results = mpm.simulate([p.scene for p in members], device=device, frame_count=frame_count)
+        results = mpm.simulate([p.scene for p in members], device=device, frame_count=frame_count, cancelled=cancelled)
         vertices = [advect_vertices(p.binding, r.positions, r.deformation) for p, r in zip(members, results)]
         rendered = _render(members, vertices, full_masks, coverage_masks, device)
         for i, p, r, (masks, masks_full) in zip(group, members, results, rendered):

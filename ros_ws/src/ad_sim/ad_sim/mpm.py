@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import warp as wp
@@ -73,6 +74,10 @@ _BOUND = wp.constant(BOUNDARY_CELLS)
 _GROUND_FRICTION = wp.constant(GROUND_FRICTION)
 _CLAMP_LO = wp.constant(CLAMP_LO)
 _CLAMP_HI = wp.constant(CLAMP_HI)
+
+
+class Cancelled(Exception):
+    """simulate() was asked to stop (its `cancelled` callable returned True)."""
 
 
 @dataclass
@@ -472,8 +477,11 @@ def simulate(
     gravity: float = GRAVITY,
     boundaries: bool = True,
     shared_p2g: bool | None = None,
+    cancelled: Callable[[], bool] | None = None,
 ) -> list[SceneResult]:
     """Simulates all scenes together in the same kernel launches; returns one result per scene.
+    `cancelled`, asked before each frame, ends the simulation early by raising Cancelled (a stopping
+    node's worker must not be inside Warp when the interpreter exits).
 
     gravity (m/s^2 along -z) and boundaries (walls + ground) can be switched off for physics tests.
     shared_p2g selects the shared-memory P2G kernel (default: on CUDA devices only; on CPU it
@@ -549,6 +557,8 @@ def simulate(
 
             frames = tqdm(frames, desc=f"MPM {num_scenes} scenes", unit="frame")
         for frame in frames:
+            if cancelled is not None and cancelled():
+                raise Cancelled(f"simulation of {num_scenes} scene(s) cancelled at frame {frame}")
             for it in range(iterations):
                 if shared_p2g:
                     wp.launch_tiled(

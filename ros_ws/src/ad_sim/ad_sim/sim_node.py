@@ -42,6 +42,7 @@ from .dds import declare_parameters, non_ros_args, number, use_fast_heartbeat
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
 ACK_SLICE = 0.1  # s between looks at the stop flag while waiting for acknowledgements
+WORKER_JOIN_TIMEOUT = 10.0  # s; a stopped worker ends within one simulated frame, well under this
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
 
 
@@ -193,6 +194,7 @@ class SimNode(Node):
         self.views = self.param("views") or max(instance.views for instance in self.instances)
         self.sim_publishers = SimPublishers(self, self.views, self.prefix, self.param("qos_depth"), stop)
         self.episodes = queue.Queue(maxsize=2 * self.param("batch"))
+        self.worker = threading.Thread(target=self.simulate_ahead, name="simulate", daemon=True)
         self.failed = False
 
     def _load_instances(self) -> list:
@@ -217,13 +219,16 @@ class SimNode(Node):
     def simulate_ahead(self) -> None:
         """Worker thread: simulate batches and queue their episodes (None after the last one)."""
         from .episode import simulate_batch
+        from .mpm import Cancelled
 
         batch = self.param("batch")
         views = self.param("views") or None
         try:
             while not self.stop.is_set():
                 for start in range(0, len(self.instances), batch):
-                    for episode in simulate_batch(self.instances[start : start + batch], device=self.param("device"), views=views):
+                    episodes = simulate_batch(self.instances[start : start + batch], device=self.param("device"),
+                                              views=views, cancelled=self.stop.is_set)
+                    for episode in episodes:
                         while not self.stop.is_set():
                             try:
                                 self.episodes.put(episode, timeout=0.1)
@@ -234,6 +239,8 @@ class SimNode(Node):
                         return
                 if not self.param("loop"):
                     break
+        except Cancelled:  # the node is stopping
+            pass
         except Exception as exc:  # report and end playback rather than hang the publisher
             self.get_logger().error(f"simulation failed: {type(exc).__name__}: {exc}")
             self.failed = True
@@ -260,8 +267,7 @@ class SimNode(Node):
             self.stop.wait(min(remaining, 0.1))
 
     def play(self) -> None:
-        worker = threading.Thread(target=self.simulate_ahead, name="simulate", daemon=True)
-        worker.start()
+        self.worker.start()
         self._wait_for_subscribers()
         frame_prefix = self.param("frame_id")
         index = 0  # episodes started; `played` counts those published whole
@@ -294,6 +300,10 @@ class SimNode(Node):
         self.sim_publishers.wait_for_acks()
         cut = f" (episode {index - 1} cut short by the stop)" if index > played else ""
         self.get_logger().info(f"published {played} episode(s){cut}, {self.sim_publishers.published} messages")
+        self.stop.set()  # the worker ends within a simulated frame (or a queue timeout)
+        # A daemon thread still inside Warp when the interpreter finalises is killed there, and its C++
+        # frames abort the process ("terminate called without an active exception").
+        self.worker.join(timeout=WORKER_JOIN_TIMEOUT)
 
 
 def main(args: list[str] | None = None) -> None:
