@@ -233,12 +233,18 @@ SECTION_15 = {"unseen, `h3reg2`, seed 0 (**shipped**)": SHIPPED_SEED_0["unseen, 
               "unseen, `h3reg2`, none (binary masks, section 8)": "ablation_earlier3_reg2_none_20ep_unseen.json"} | {
     f"unseen, `{run}` ({what})": f"experiments/grey_masks/{run}_unseen.json" for run, what in GREY_RUNS.items()}
 
+# section 16: the same instances thrown down harder, against section 8's runs on the benchmark's scenes
+FAST_RUNS = {"fast_s0": "harder impacts, none, seed 0", "fast_s1": "harder impacts, none, seed 1"}
+SECTION_16 = {"unseen, `h3reg2`, seed 0 (**shipped**)": SHIPPED_SEED_0["unseen, `h3reg2`, seed 0 (**shipped**)"],
+              "unseen, `h3reg2`, none (benchmark scenes, section 8)": "ablation_earlier3_reg2_none_20ep_unseen.json"} | {
+    f"unseen, `{run}` ({what})": f"experiments/fast_impacts/{run}_unseen.json" for run, what in FAST_RUNS.items()}
+
 
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
                                                    ("## 7. ", SECTION_7), ("## 8. ", SECTION_8), ("## 9. ", SECTION_9),
                                                    ("## 10. ", SECTION_10), ("## 11. ", SECTION_11),
                                                    ("## 13. ", SECTION_13), ("## 14. ", SECTION_14),
-                                                   ("## 15. ", SECTION_15)])
+                                                   ("## 15. ", SECTION_15), ("## 16. ", SECTION_16)])
 def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
     for label, file in rows_to_files.items():
@@ -397,12 +403,13 @@ def test_experiments_section_14_fit_table_is_the_histories():
             best["val_ce"], last["val_ce"], unseen["regl1"])], run
 
 
-def test_experiments_section_15_fit_table_is_the_histories():
-    """Section 15: each grey run's selected epoch (SPEC's score), its validation figures there, its lowest
-    validation RegL1 and its training RegL1 at the last epoch are its history's."""
-    rows = section_rows(15)
-    for run in GREY_RUNS:
-        history = epoch_rows(f"grey_masks/{run}.history.json")
+@pytest.mark.parametrize("section,folder,runs", [(15, "grey_masks", GREY_RUNS), (16, "fast_impacts", FAST_RUNS)])
+def test_experiments_fit_tables_are_the_histories(section, folder, runs):
+    """Sections 15 and 16: each run's selected epoch (SPEC's score), its validation figures there, its
+    lowest validation RegL1 and its training RegL1 at the last epoch are its history's."""
+    rows = section_rows(section)
+    for run in runs:
+        history = epoch_rows(f"{folder}/{run}.history.json")
         best, last = min(history, key=lambda r: r["val_score"]), history[-1]
         assert len(history) == 20, run
         assert rows[f"`{run}`"] == [f"epoch {best['epoch']}"] + [f"{v:.3f}" for v in (
