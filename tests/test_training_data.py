@@ -246,3 +246,21 @@ def test_resized_videos_are_area_averaged(bags, tmp_path):
     expected = np.stack([cv2.resize(f, (32, 32), interpolation=cv2.INTER_AREA) for f in video]) / 255.0
     np.testing.assert_allclose(np.asarray(frames[s][r], np.float32), expected, atol=1e-3)
     assert (tmp_path / "cache" / ds.shards[s].name / "videos_32x32.npy").exists()
+
+
+def test_displacements_are_scaled_by_their_median_and_never_overflow_the_float16_cache():
+    """SPEC 6's median scaling, unchanged for an ordinary episode; an object at rest for most frames
+    (median near zero: one hard impact, then stillness) is scaled just enough that float16 keeps it finite."""
+    rng = np.random.default_rng(0)
+    moving = rng.normal(size=(25, 1024, 15)).astype(np.float32)
+    expected = moving[:, :, 3:6] / np.median(np.linalg.norm(moving[1:, :, 3:6], axis=-1))
+    np.testing.assert_allclose(data.normalise_displacement(moving.copy())[:, :, 3:6], expected, rtol=1e-6)
+
+    resting = np.zeros((25, 1024, 15), np.float32)
+    resting[1:3, :, 5] = -0.1  # two frames of falling, 0.1 m each, then rest
+    resting[3:, :, 3] = 1e-9   # and a creep far below the float16 range's reach
+    scaled = data.normalise_displacement(resting.copy())[:, :, 3:6]
+    assert np.isfinite(scaled.astype(np.float16)).all()
+    assert np.abs(scaled).max() == pytest.approx(data.FLOAT16_SAFE, rel=1e-5)
+    np.testing.assert_allclose(scaled[3:, :, 0] / scaled[1, :, 2], -1e-8, rtol=1e-5)  # proportions kept
+    assert not data.normalise_displacement(np.zeros((25, 4, 15), np.float32)).any()  # motionless: zeros

@@ -120,13 +120,19 @@ def _particles(msg) -> np.ndarray:
                     axis=1).astype(np.float32)
 
 
+# Normalised displacements stay below this: the cache stores trajectories as float16 (largest 65504).
+FLOAT16_SAFE = 6.0e4
+
+
 def normalise_displacement(trajectory: np.ndarray) -> np.ndarray:
     """Scales the displacement channels (3:6) by their median magnitude over particles and
-    frames 1..T-1 (SPEC 6), in place; a motionless episode keeps its zeros."""
+    frames 1..T-1 (SPEC 6), in place; a motionless episode keeps its zeros. An object at rest for
+    most of the episode (a hard impact) can have a median near zero: the scale is then raised just
+    enough that the largest displacement stays within FLOAT16_SAFE, instead of caching infinities."""
     mags = np.linalg.norm(trajectory[1:, :, 3:6], axis=-1)
-    median = float(np.median(mags))
-    if median > 1e-12:
-        trajectory[:, :, 3:6] /= median
+    scale = max(float(np.median(mags)), float(mags.max(initial=0.0)) / FLOAT16_SAFE)
+    if scale > 1e-12:
+        trajectory[:, :, 3:6] /= scale
     return trajectory
 
 
