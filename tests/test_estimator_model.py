@@ -622,11 +622,25 @@ def test_a_model_with_broken_weights_is_refused_at_load(tmp_path):
 
 
 def test_no_estimate_is_made_of_outputs_that_are_not_finite(tmp_path):
-    """Outputs that turn NaN for one input only (the trial run passed): an error, not an estimate."""
-    model = EstimatorModel.load(build_clip_model(tmp_path / "m.onnx"))
-    session = model._session
-    model._session = types.SimpleNamespace(run=lambda names, feeds, options=None: [
-        np.where(np.arange(o.size).reshape(o.shape) == 0, np.nan, o) for o in session.run(names, feeds, options)])
+    """Outputs that turn NaN for some inputs only (the all-zero trial run at load passes): an error, not an
+    estimate. A real graph: the clip model's logits plus log(0.01 - mean mask), NaN once a mask covers
+    more than 1% of the clip."""
+    path = build_clip_model(tmp_path / "m.onnx")
+    graph = onnx.load(str(path))
+    producer = next(n for n in graph.graph.node if "logits" in n.output)
+    producer.output[list(producer.output).index("logits")] = "logits_raw"
+    size = 25 * 32 * 32
+    graph.graph.initializer.extend([
+        onnx.numpy_helper.from_array(np.full((size, 1), 1.0 / size, np.float32), "mean_weights"),
+        onnx.numpy_helper.from_array(np.array(0.01, np.float32), "covered_limit")])
+    graph.graph.node.extend([
+        onnx.helper.make_node("Flatten", ["masks"], ["all_pixels"], axis=1),
+        onnx.helper.make_node("MatMul", ["all_pixels", "mean_weights"], ["mean_mask"]),
+        onnx.helper.make_node("Sub", ["covered_limit", "mean_mask"], ["headroom"]),
+        onnx.helper.make_node("Log", ["headroom"], ["log_headroom"]),
+        onnx.helper.make_node("Add", ["logits_raw", "log_headroom"], ["logits"])])
+    onnx.save(graph, str(path))
+    model = EstimatorModel.load(path)  # the trial run's zeros give finite outputs
     masks = falling_masks(25, size=32)
     with pytest.raises(ValueError, match=r"m.onnx: the model's outputs are not finite \(NaN or inf\) for these 25 "
                                          r"frames, so there is no estimate"):
