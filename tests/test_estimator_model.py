@@ -220,7 +220,8 @@ def test_mask_levels_metadata(tmp_path, kind, entries, levels):
     _with_metadata(path, **entries)
     info = EstimatorModel.load(path).info
     assert info.mask_levels == levels
-    assert info.mask_threshold == (DEFAULT_THRESHOLD if levels == "binary" else None)
+    assert info.input_threshold() == (DEFAULT_THRESHOLD if levels == "binary" else None)
+    assert info.input_threshold(90) == (90 if levels == "binary" else None)
     assert levels in MASK_LEVELS
 
 

@@ -148,7 +148,7 @@ def test_a_student_of_grey_masks_exports_as_one_and_the_estimator_feeds_it_the_l
         meta = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
         assert meta["ad.mask_levels"] == "coverage", path
     info = EstimatorModel.load(model_path).info
-    assert (info.mask_levels, info.mask_threshold) == ("coverage", None)
+    assert (info.mask_levels, info.input_threshold()) == ("coverage", None)
     # The same weights, marked binary (no ad.mask_levels, as every export before grey masks).
     twin = tmp_path / "twin" / "student.onnx"
     twin.parent.mkdir()

@@ -82,11 +82,12 @@ def substitute(text: str, root, overrides: dict[str, str] | None = None) -> str:
 
 
 def typed(text: str):
-    """A <param value> as launch_ros types it (launch_ros.utilities.evaluate_parameters): YAML rules, so an
-    empty value loads as None, which it refuses (TypeError); a string that may be empty must be quoted."""
+    """A <param value> as launch_ros types it (launch_ros.utilities.evaluate_parameters): YAML rules. An empty
+    value loads as None, which some launch_ros versions refuse (TypeError), so this check asks for a string
+    that may be empty to be quoted, as launch_ros's docstring advises for substitutions that must stay strings."""
     value = yaml.safe_load(text)
     if value is None:
-        raise TypeError(f"launch_ros refuses the parameter value {text!r} (YAML null); quote it: '...'")
+        raise TypeError(f"launch_ros may refuse the parameter value {text!r} (YAML null); quote it: '...'")
     return value
 
 
@@ -334,7 +335,7 @@ BROKEN = {
     "unknown-tag": ("sim.launch.xml", '<arg name="views"', '<argument name="views"', structure_problems,
                     "unknown tag <argument>"),
     "empty-value-unquoted": ("estimator.launch.xml", 'value="\'$(var model_path)\'"', 'value="$(var model_path)"',
-                             parameter_problems, "launch_ros refuses the parameter value ''"),
+                             parameter_problems, "launch_ros may refuse the parameter value ''"),
 }
 
 

@@ -71,6 +71,12 @@ def _mcap_files(bag: Path) -> list[Path]:
     return [bag] if bag.is_file() else sorted(bag.glob("*.mcap"))
 
 
+def _coverage_bag(bag: Path) -> bool:
+    """Whether `ad_sim.generate --coverage-masks` wrote the bag (its metadata's custom_data says so)."""
+    custom = (BagReader(bag, recover=True).metadata or {}).get("custom_data") or {}
+    return custom.get("masks") == "coverage"
+
+
 def bag_key(bag: Path) -> str:
     """Content key of one bag (see the module docstring)."""
     h = hashlib.sha256(f"v{CACHE_VERSION}".encode())
@@ -302,7 +308,7 @@ class Dataset:
         return np.asarray(self._trajectories[s][r], dtype=np.float32)
 
     def video(self, j: int) -> np.ndarray:
-        """(25, 128, 128) uint8 0/255 mask video j."""
+        """(25, 128, 128) uint8 mask video j: 0/255, or levels 0..255 in a coverage dataset."""
         s, r = self.video_loc[j]
         return np.asarray(self._videos[s][r])
 
@@ -324,7 +330,11 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True,
     `coverage` the videos keep the masks' grey levels (a separate cache folder per bag)."""
     cache_dir = Path(cache_dir)
     shards, problems = [], []
-    for path in tqdm(find_bags(bags), desc="cache bags", disable=not progress, unit="bag"):
+    paths = find_bags(bags)
+    if coverage and (binary := [str(p) for p in paths if not _coverage_bag(p)]):
+        log.warning("grey-mask videos asked for, but %d bag(s) were not written with coverage masks (ad_sim.generate "
+                    "--coverage-masks), so their videos are 0/255: %s", len(binary), ", ".join(binary[:3]))
+    for path in tqdm(paths, desc="cache bags", disable=not progress, unit="bag"):
         folder = cache_dir / (bag_key(path) + ("-coverage" if coverage else ""))
         if (folder / "meta.json").exists():
             source_problems = json.loads((folder / "meta.json").read_text())["source_problems"]
@@ -360,8 +370,8 @@ def split_instances(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray,
 
 
 def resize_masks(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """(..., H, W) uint8 0/255 masks -> (..., h, w) float32 in [0, 1], area-averaged (what the
-    estimator does to camera frames before the model)."""
+    """(..., H, W) uint8 masks (0/255, or coverage levels) -> (..., h, w) float32 in [0, 1], area-averaged
+    (what the estimator does to camera frames before the model)."""
     import cv2
 
     h, w = size
@@ -374,7 +384,7 @@ def resize_masks(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 def resized_videos(dataset: Dataset, size: tuple[int, int], progress: bool = True) -> list[np.ndarray]:
-    """Per shard, every video at `size`: the cached uint8 0/255 videos themselves at their own size
+    """Per shard, every video at `size`: the cached uint8 videos themselves at their own size
     (no copy), else area-resized float16 in [0, 1], cached beside the shard. `as_unit_float` reads
     either kind."""
     if dataset._videos[0].shape[-2:] == tuple(size):

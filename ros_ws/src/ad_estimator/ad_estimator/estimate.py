@@ -64,7 +64,7 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
     parameter `values` (PARAMETERS names). `tally` counts the frames read ("frames") and those
     rejected, by reason; each rejection is also warned about."""
     window = model_window(values, model.info)
-    threshold = values["mask_threshold"] if model.info.mask_levels == "binary" else None  # as the node
+    threshold = model.info.input_threshold(values["mask_threshold"])  # as the node
     idle_ns = int(values["idle_flush"] * 1e9)
     tally = Counter() if tally is None else tally
     rows: list[Row] = []

@@ -129,7 +129,7 @@ def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed
     if not frames:
         return None
     if masks is None:
-        masks = [image_to_mask(image, MAX_IMAGE_PIXELS, model.info.mask_threshold) for _, image in frames]
+        masks = [image_to_mask(image, MAX_IMAGE_PIXELS, model.info.input_threshold()) for _, image in frames]
     out = clip_output([s for s, _ in frames], masks[:observed], encode or model.encode, model.info.frame_interval,
                       model.info.frame_count, slot_tolerance=slot_tolerance, history=model.info.previous_frames)
     estimate = model.predict(out.features, out.valid)
@@ -187,7 +187,7 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
     skipped; an episode whose window holds fewer than K frame slots is left out of the K row.
     Each of these is noted in `result` and warned about, naming the bag and episode."""
     where = f"{bag}: episode {instance.episode_id}"
-    frames, masks, rejected = accepted_frames(bag, instance, frames, model.info.mask_threshold)
+    frames, masks, rejected = accepted_frames(bag, instance, frames, model.info.input_threshold())
     if rejected:
         result.skipped_frames += rejected
         warnings.warn(f"{where}: {len(rejected)} mask frame(s) skipped, as the node rejects them; the first at "

@@ -98,7 +98,7 @@ TRAINED_EXTENT = (0.15, 0.55)
 def object_extent(mask: np.ndarray) -> float:
     """The object's larger side (height or width of its bounding box) in the simulator mask of
     `mask`, as a fraction of the image side; 0 without an object."""
-    inside = as_simulator_mask(mask) > 0
+    inside = as_simulator_mask(mask) > 127  # a grey (coverage) mask's edge pixels count from half covered
     rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
     if not len(rows):
         return 0.0
@@ -143,10 +143,10 @@ class ModelInfo:
     frame_inputs: tuple[str, ...] = ("mask",)  # input channels of the frame encoder, see frame_inputs()
     mask_levels: str = "binary"  # binary: 0/255 masks; coverage: each pixel's area coverage, 0..255
 
-    @property
-    def mask_threshold(self) -> int | None:
-        """What images.image_to_mask is given for this model: None keeps a coverage model's grey levels."""
-        return None if self.mask_levels == "coverage" else DEFAULT_THRESHOLD
+    def input_threshold(self, mask_threshold: int = DEFAULT_THRESHOLD) -> int | None:
+        """What images.image_to_mask is given for this model: the node's mask_threshold for a binary
+        model, None (the levels themselves) for a coverage model."""
+        return None if self.mask_levels == "coverage" else mask_threshold
 
     @property
     def previous_frames(self) -> int:

@@ -101,8 +101,7 @@ class EstimatorNode(Node):
         self.slot_tolerance = p["slot_tolerance"]
         self.window = model_window(p, self.info)
         self.max_pixels = p["max_image_pixels"]
-        # A model of grey masks reads the levels themselves (ModelInfo.mask_threshold), not a threshold.
-        self.threshold = p["mask_threshold"] if self.info.mask_levels == "binary" else None
+        self.threshold = self.info.input_threshold(p["mask_threshold"])
         self.idle_flush = p["idle_flush"]
 
         self.queue: queue.Queue = queue.Queue(maxsize=p["queue_size"])
@@ -141,6 +140,12 @@ class EstimatorNode(Node):
         self.get_logger().info(
             f"model {self.info.model_id} ({self.info.kind}, {self.info.path}); input {self.input_topic} "
             f"({'reliable' if p['reliable'] else 'best effort'}); policy {policy}; output {self.publisher.topic_name}")
+        if self.info.mask_levels == "coverage":  # what it needs: no 0/255 stream carries its grey edges
+            self.get_logger().warning(
+                "this model reads grey masks (ad.mask_levels coverage): it gets each pixel's level, and mask_threshold "
+                "does not apply. Feed it camera masks larger than 128x128 (area-averaged here) or bags from "
+                "`ad_sim.generate --coverage-masks`; the simulator node's 128x128 0/255 masks lack the grey edges "
+                "it was trained on")
 
     # ------------------------------------------------------------------ set-up
 

@@ -246,8 +246,12 @@ class SimNode(Node):
             self.failed = True
             self.stop.set()
         finally:
-            if not self.stop.is_set():
-                self.episodes.put(None)
+            while not self.stop.is_set():  # the end marker, unless the node is stopping (then nobody reads it)
+                try:
+                    self.episodes.put(None, timeout=0.1)
+                    break
+                except queue.Full:
+                    pass
 
     # -- playback
 
@@ -300,10 +304,16 @@ class SimNode(Node):
         self.sim_publishers.wait_for_acks()
         cut = f" (episode {index - 1} cut short by the stop)" if index > played else ""
         self.get_logger().info(f"published {played} episode(s){cut}, {self.sim_publishers.published} messages")
-        self.stop.set()  # the worker ends within a simulated frame (or a queue timeout)
-        # A daemon thread still inside Warp when the interpreter finalises is killed there, and its C++
-        # frames abort the process ("terminate called without an active exception").
-        self.worker.join(timeout=WORKER_JOIN_TIMEOUT)
+
+    def stop_worker(self) -> None:
+        """Ends the simulation worker before the node goes: a daemon thread still inside Warp when the
+        interpreter finalises is killed there, and its C++ frames abort the process ("terminate called
+        without an active exception"). It ends within a simulated frame or a queue timeout."""
+        self.stop.set()
+        if self.worker.is_alive():
+            self.worker.join(timeout=WORKER_JOIN_TIMEOUT)
+        if self.worker.is_alive():
+            self.get_logger().warning(f"the simulation worker did not end within {WORKER_JOIN_TIMEOUT} s")
 
 
 def main(args: list[str] | None = None) -> None:
@@ -333,6 +343,7 @@ def main(args: list[str] | None = None) -> None:
         raise SystemExit(2) from None
     finally:
         if node is not None:
+            node.stop_worker()
             node.destroy_node()
         rclpy.try_shutdown()
 
