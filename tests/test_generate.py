@@ -277,3 +277,11 @@ def test_committed_sample_bags():
         assert names == [e.instance.shape for e in group_episodes(BagReader(bag, topics=["/ad_sim/instance"]))]
     masks_bag = [e.instance.shape for e in group_episodes(BagReader(bags[0], topics=["/ad_sim/instance"]))]
     assert sorted(set(masks_bag)) == sorted(benchmark_shapes("unseen", "tiny")) and len(masks_bag) == 6
+
+
+def test_generate_starts_without_warp_so_an_early_ctrl_c_is_one_line():
+    """Importing the command pulls in neither Warp nor SciPy (a second of imports): a Ctrl-C right after
+    start then lands in main's handler (one line, exit 130), not in a module import's traceback."""
+    probe = "import sys, ad_sim.generate; print(sorted({'warp', 'scipy', 'trimesh'} & set(sys.modules)))"
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stdout.strip() == "[]", result.stdout + result.stderr

@@ -190,3 +190,37 @@ def test_build_script_verify_catches_a_changed_mesh(tmp_path):
     assert verify.returncode == 1
     assert "torus: torus.ply.gz does not match its sha256" in verify.stderr
     assert "stray.ply.gz" in verify.stderr
+
+
+def test_a_ctrl_c_during_a_swallowing_import_is_held_and_raised_after(tmp_path, monkeypatch):
+    """trimesh catches BaseException around its optional imports, so a Ctrl-C during its first import was
+    lost (and libigl's turned into an ImportError): import_holding_ctrl_c holds it and raises it after."""
+    import signal
+    import threading
+
+    from ad_sim.shapes import import_holding_ctrl_c
+
+    (tmp_path / "swallows_ctrl_c.py").write_text(
+        "import os, signal, time\n"
+        "try:\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "    time.sleep(0.2)  # the handler runs here\n"
+        "except BaseException:\n"
+        "    pass  # as trimesh does around its optional imports\n"
+        "LOADED = True\n")
+    (tmp_path / "plain_module.py").write_text("LOADED = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt):
+        import_holding_ctrl_c("plain_module", "swallows_ctrl_c")
+    assert sys.modules["swallows_ctrl_c"].LOADED  # imported whole, then the Ctrl-C
+    assert signal.getsignal(signal.SIGINT) is before
+    [plain] = import_holding_ctrl_c("plain_module")
+    assert plain.LOADED
+    imported = []  # outside the main thread signal handlers cannot be set: a plain import
+    thread = threading.Thread(target=lambda: imported.extend(import_holding_ctrl_c("plain_module")))
+    thread.start()
+    thread.join()
+    assert imported and imported[0].LOADED
+    for name in ("swallows_ctrl_c", "plain_module"):
+        sys.modules.pop(name, None)

@@ -16,7 +16,8 @@ import shutil
 import sys
 from pathlib import Path
 
-from . import messages
+# ad_sim.messages (and through it Warp and SciPy, a second of imports) is imported where it is used, so
+# that a Ctrl-C right after start lands in main's handler (one line, exit 130) instead of a traceback.
 from .rosbag import BagError, BagWriter, qos_profile
 
 DONE_MARKER = "DONE"
@@ -77,9 +78,13 @@ def _file_digests(folder: Path) -> dict[str, str]:
 
 
 def write_episodes(
-    writer: BagWriter, episodes, first_index: int, prefix: str = messages.DEFAULT_PREFIX, skip: frozenset[str] = frozenset()
+    writer: BagWriter, episodes, first_index: int, prefix: str | None = None, skip: frozenset[str] = frozenset()
 ) -> None:
-    """Write episodes to an open bag, numbering them from first_index; topics in `skip` are left out."""
+    """Write episodes to an open bag, numbering them from first_index; topics in `skip` are left out;
+    `prefix`: the topics' (default messages.DEFAULT_PREFIX)."""
+    from . import messages
+
+    prefix = messages.DEFAULT_PREFIX if prefix is None else prefix
     for offset, episode in enumerate(episodes):
         types = messages.topic_types(len(episode.cameras), prefix)
         for topic, stamp, message in messages.episode_messages(episode, first_index + offset, prefix=prefix):
@@ -218,6 +223,8 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
         parser.error("--shards must be >= 1")
     index_range, count = ((args.shard[0],), args.shard[1]) if args.shard else (range(args.shards), args.shards)
     source = {"instances": str(args.instances)} if args.instances else {"size": args.size, "split": args.split, "seed": str(args.seed)}
+    from . import messages
+
     for index in index_range:
         folder = shard_dir(args.out, name, index, count)
         custom = {"generator": "ad_sim.generate", "shard": f"{index}/{count}", **source,

@@ -8,15 +8,38 @@ packages they come from, and `verify`s them.
 from __future__ import annotations
 
 import gzip
+import importlib
 import io
 import json
+import signal
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-import igl  # at import, not inside the sampler: Ctrl-C during a native module's first import aborts the process
 import numpy as np
-import trimesh
+
+
+def import_holding_ctrl_c(*names: str) -> list:
+    """Imports modules that mishandle a Ctrl-C during their first import (about a second): trimesh catches
+    BaseException around its optional imports and so swallows it, and libigl's native start-up turns it
+    into "ImportError: std::bad_cast". In the main thread, a SIGINT that arrives meanwhile is held and
+    raised as KeyboardInterrupt once they are in; elsewhere they are imported as they are."""
+    if threading.current_thread() is not threading.main_thread():
+        return [importlib.import_module(name) for name in names]
+    held = []
+    previous = signal.signal(signal.SIGINT, lambda *_: held.append(True))
+    try:
+        modules = [importlib.import_module(name) for name in names]
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if held:
+        raise KeyboardInterrupt
+    return modules
+
+
+# At import, not inside the sampler: a first import of igl within a Ctrl-C aborts the process.
+igl, trimesh = import_holding_ctrl_c("igl", "trimesh")
 
 DATA_DIR = Path(__file__).resolve().parent / "data" / "shapes"
 SPLIT_FILE = DATA_DIR / "split_v1.json"
