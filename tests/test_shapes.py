@@ -217,6 +217,14 @@ def test_a_ctrl_c_during_a_swallowing_import_is_held_and_raised_after(tmp_path, 
     assert signal.getsignal(signal.SIGINT) is before
     [plain] = import_holding_ctrl_c("plain_module")
     assert plain.LOADED
+    sys.modules.pop("swallows_ctrl_c")
+    calls = []  # a program's own handler (a node's stop flag) gets the held signal, once
+    signal.signal(signal.SIGINT, lambda *args: calls.append(args[0]))
+    try:
+        import_holding_ctrl_c("swallows_ctrl_c")
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert calls == [signal.SIGINT]
     imported = []  # outside the main thread signal handlers cannot be set: a plain import
     thread = threading.Thread(target=lambda: imported.extend(import_holding_ctrl_c("plain_module")))
     thread.start()

@@ -11,6 +11,7 @@ import gzip
 import importlib
 import io
 import json
+import os
 import signal
 import threading
 from dataclasses import dataclass
@@ -24,7 +25,8 @@ def import_holding_ctrl_c(*names: str) -> list:
     """Imports modules that mishandle a Ctrl-C during their first import (about a second): trimesh catches
     BaseException around its optional imports and so swallows it, and libigl's native start-up turns it
     into "ImportError: std::bad_cast". In the main thread, a SIGINT that arrives meanwhile is held and
-    raised as KeyboardInterrupt once they are in; elsewhere they are imported as they are."""
+    handed, once they are in, to the handler that was there (Python's raises KeyboardInterrupt; a node's
+    may set its stop flag); elsewhere they are imported as they are."""
     if threading.current_thread() is not threading.main_thread():
         return [importlib.import_module(name) for name in names]
     held = []
@@ -33,8 +35,10 @@ def import_holding_ctrl_c(*names: str) -> list:
         modules = [importlib.import_module(name) for name in names]
     finally:
         signal.signal(signal.SIGINT, previous)
-    if held:
-        raise KeyboardInterrupt
+    if held and callable(previous):
+        previous(signal.SIGINT, None)
+    elif held and previous == signal.SIG_DFL:
+        os.kill(os.getpid(), signal.SIGINT)  # ends the process, as it would have
     return modules
 
 
