@@ -194,11 +194,12 @@ def test_build_script_verify_catches_a_changed_mesh(tmp_path):
 
 def test_a_ctrl_c_during_a_swallowing_import_is_held_and_raised_after(tmp_path, monkeypatch):
     """trimesh catches BaseException around its optional imports, so a Ctrl-C during its first import was
-    lost (and libigl's turned into an ImportError): import_holding_ctrl_c holds it and raises it after."""
+    lost (and libigl's turned into an ImportError): ctrl_c_held holds it and hands it on after."""
+    import importlib
     import signal
     import threading
 
-    from ad_sim.shapes import import_holding_ctrl_c
+    from ad_sim.shapes import ctrl_c_held
 
     (tmp_path / "swallows_ctrl_c.py").write_text(
         "import os, signal, time\n"
@@ -208,27 +209,33 @@ def test_a_ctrl_c_during_a_swallowing_import_is_held_and_raised_after(tmp_path, 
         "except BaseException:\n"
         "    pass  # as trimesh does around its optional imports\n"
         "LOADED = True\n")
-    (tmp_path / "plain_module.py").write_text("LOADED = True\n")
     monkeypatch.syspath_prepend(str(tmp_path))
+
+    def import_fresh():
+        sys.modules.pop("swallows_ctrl_c", None)
+        with ctrl_c_held():
+            return importlib.import_module("swallows_ctrl_c")
+
     before = signal.getsignal(signal.SIGINT)
-    with pytest.raises(KeyboardInterrupt):
-        import_holding_ctrl_c("plain_module", "swallows_ctrl_c")
+    with pytest.raises(KeyboardInterrupt):  # Python's own handler: raised once the import is done
+        import_fresh()
     assert sys.modules["swallows_ctrl_c"].LOADED  # imported whole, then the Ctrl-C
     assert signal.getsignal(signal.SIGINT) is before
-    [plain] = import_holding_ctrl_c("plain_module")
-    assert plain.LOADED
-    sys.modules.pop("swallows_ctrl_c")
     calls = []  # a program's own handler (a node's stop flag) gets the held signal, once
     signal.signal(signal.SIGINT, lambda *args: calls.append(args[0]))
     try:
-        import_holding_ctrl_c("swallows_ctrl_c")
+        assert import_fresh().LOADED
     finally:
         signal.signal(signal.SIGINT, before)
     assert calls == [signal.SIGINT]
-    imported = []  # outside the main thread signal handlers cannot be set: a plain import
-    thread = threading.Thread(target=lambda: imported.extend(import_holding_ctrl_c("plain_module")))
+    ran = []  # outside the main thread signal handlers cannot be set: the block runs as it is
+
+    def in_a_thread():
+        with ctrl_c_held():
+            ran.append(signal.getsignal(signal.SIGINT))
+
+    thread = threading.Thread(target=in_a_thread)
     thread.start()
     thread.join()
-    assert imported and imported[0].LOADED
-    for name in ("swallows_ctrl_c", "plain_module"):
-        sys.modules.pop(name, None)
+    assert ran == [before]
+    sys.modules.pop("swallows_ctrl_c", None)

@@ -8,12 +8,12 @@ packages they come from, and `verify`s them.
 from __future__ import annotations
 
 import gzip
-import importlib
 import io
 import json
 import os
 import signal
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -21,29 +21,32 @@ from pathlib import Path
 import numpy as np
 
 
-def import_holding_ctrl_c(*names: str) -> list:
-    """Imports modules that mishandle a Ctrl-C during their first import (about a second): trimesh catches
+@contextmanager
+def ctrl_c_held():
+    """For imports that mishandle a Ctrl-C during their first import (about a second): trimesh catches
     BaseException around its optional imports and so swallows it, and libigl's native start-up turns it
     into "ImportError: std::bad_cast". In the main thread, a SIGINT that arrives meanwhile is held and
-    handed, once they are in, to the handler that was there (Python's raises KeyboardInterrupt; a node's
-    may set its stop flag); elsewhere they are imported as they are."""
+    handed, once the block is done, to the handler that was there (Python's raises KeyboardInterrupt; a
+    node's may set its stop flag); elsewhere the block runs as it is."""
     if threading.current_thread() is not threading.main_thread():
-        return [importlib.import_module(name) for name in names]
+        yield
+        return
     held = []
     previous = signal.signal(signal.SIGINT, lambda *_: held.append(True))
     try:
-        modules = [importlib.import_module(name) for name in names]
+        yield
     finally:
         signal.signal(signal.SIGINT, previous)
     if held and callable(previous):
         previous(signal.SIGINT, None)
     elif held and previous == signal.SIG_DFL:
         os.kill(os.getpid(), signal.SIGINT)  # ends the process, as it would have
-    return modules
 
 
 # At import, not inside the sampler: a first import of igl within a Ctrl-C aborts the process.
-igl, trimesh = import_holding_ctrl_c("igl", "trimesh")
+with ctrl_c_held():
+    import igl
+    import trimesh
 
 DATA_DIR = Path(__file__).resolve().parent / "data" / "shapes"
 SPLIT_FILE = DATA_DIR / "split_v1.json"
