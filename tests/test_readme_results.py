@@ -408,14 +408,11 @@ def test_experiments_fit_tables_are_the_histories(section, folder, runs):
     """Sections 15 and 16: each run's selected epoch (SPEC's score), its validation figures there, its
     lowest validation RegL1 and its training RegL1 at the last epoch are its history's."""
     rows = section_rows(section)
-    runs = {**runs, "h3reg2": None}  # and the binary baseline's row, from its history
-    for run in runs:
-        if run == "h3reg2":
-            label = f"`h3reg2`, none ({'binary' if section == 15 else 'benchmark scenes'}, section 8)"
-            history = json.loads((RESULTS / "streaming_earlier3_reg2_none.history.json").read_text())
-        else:
-            label, history = f"`{run}`", epoch_rows(f"{folder}/{run}.history.json")
+    baseline = f"`h3reg2`, none ({'binary' if section == 15 else 'benchmark scenes'}, section 8)"
+    histories = {baseline: json.loads((RESULTS / "streaming_earlier3_reg2_none.history.json").read_text())} | {
+        f"`{run}`": epoch_rows(f"{folder}/{run}.history.json") for run in runs}
+    for label, history in histories.items():
         best, last = min(history, key=lambda r: r["val_score"]), history[-1]
-        assert len(history) == 20, run
+        assert len(history) == 20, label
         assert rows[label] == [f"epoch {best['epoch']}"] + [f"{v:.3f}" for v in (
-            best["val_acc"], best["val_regl1"], min(r["val_regl1"] for r in history), last["train_regl1"])], run
+            best["val_acc"], best["val_regl1"], min(r["val_regl1"] for r in history), last["train_regl1"])], label

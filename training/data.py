@@ -45,7 +45,7 @@ from ad_sim.materials import (
 )
 from ad_sim.messages import POINT_FIELDS, instance_topic, particles_topic
 from ad_sim.render import MASK_SIZE
-from ad_sim.rosbag import BagError, BagReader, BagUnreadable, group_episodes
+from ad_sim.rosbag import METADATA_FILE, BagError, BagReader, BagUnreadable, group_episodes, read_metadata
 
 log = logging.getLogger(__name__)
 
@@ -72,8 +72,13 @@ def _mcap_files(bag: Path) -> list[Path]:
 
 
 def _coverage_bag(bag: Path) -> bool:
-    """Whether `ad_sim.generate --coverage-masks` wrote the bag (its metadata's custom_data says so)."""
-    custom = (BagReader(bag, recover=True).metadata or {}).get("custom_data") or {}
+    """Whether `ad_sim.generate --coverage-masks` wrote the bag (its metadata.yaml's custom_data says so;
+    a lone .mcap, or a bag whose metadata.yaml is unusable, cannot say). Reads that file only: a
+    BagReader would scan the folder and warn about it a second time."""
+    try:
+        custom = read_metadata(bag / METADATA_FILE).get("custom_data") or {}
+    except ValueError:
+        return False
     return custom.get("masks") == "coverage"
 
 
