@@ -1,9 +1,11 @@
 """The README's result tables say what the measured metrics files say (no hand-copied drift)."""
 
+import importlib.util
 import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ad_estimator.metrics import (_SHORT, Predictions, error_by_true_value, format_calibration, format_table,
@@ -239,12 +241,21 @@ SECTION_16 = {"unseen, `h3reg2`, seed 0 (**shipped**)": SHIPPED_SEED_0["unseen, 
               "unseen, `h3reg2`, none (benchmark scenes, section 8)": "ablation_earlier3_reg2_none_20ep_unseen.json"} | {
     f"unseen, `{run}` ({what})": f"experiments/fast_impacts/{run}_unseen.json" for run, what in FAST_RUNS.items()}
 
+# section 17: averaging seeds and mirrored clips, scored by averaging/average.py on a regenerated seen and unseen
+AVERAGED = {"n1": "`n1` (`h3reg2` without alignment, seed 1)", "n2": "`n2` (`h3reg2` without alignment, seed 2)",
+            "shipped_mirror": "the shipped model and its mirrored clip (2 views)",
+            "avg3": "the average of the 3 (shipped, `n1`, `n2`)",
+            "avg3_mirror": "the average of the 3 and their mirrored clips (6 views)"}
+SECTION_17 = SHIPPED_SEED_0 | {f"{split}, {what}": f"experiments/averaging/{run}_{split}.json"
+                               for run, what in AVERAGED.items() for split in ("seen", "unseen")}
+
 
 @pytest.mark.parametrize("heading,rows_to_files", [("## 4. ", SECTION_4), ("## 5. ", SECTION_5), ("## 6. ", SECTION_6),
                                                    ("## 7. ", SECTION_7), ("## 8. ", SECTION_8), ("## 9. ", SECTION_9),
                                                    ("## 10. ", SECTION_10), ("## 11. ", SECTION_11),
                                                    ("## 13. ", SECTION_13), ("## 14. ", SECTION_14),
-                                                   ("## 15. ", SECTION_15), ("## 16. ", SECTION_16)])
+                                                   ("## 15. ", SECTION_15), ("## 16. ", SECTION_16),
+                                                   ("## 17. ", SECTION_17)])
 def test_experiments_tables_match_the_metrics_files(heading, rows_to_files):
     rows = table_rows((RESULTS / "experiments" / "README.md").read_text(), heading)
     for label, file in rows_to_files.items():
@@ -403,12 +414,14 @@ def test_experiments_section_14_fit_table_is_the_histories():
             best["val_ce"], last["val_ce"], unseen["regl1"])], run
 
 
-@pytest.mark.parametrize("section,folder,runs", [(15, "grey_masks", GREY_RUNS), (16, "fast_impacts", FAST_RUNS)])
-def test_experiments_fit_tables_are_the_histories(section, folder, runs):
-    """Sections 15 and 16: each run's selected epoch (SPEC's score), its validation figures there, its
+@pytest.mark.parametrize("section,folder,runs,baseline", [
+    (15, "grey_masks", GREY_RUNS, "`h3reg2`, none (binary, section 8)"),
+    (16, "fast_impacts", FAST_RUNS, "`h3reg2`, none (benchmark scenes, section 8)"),
+    (17, "averaging", ("n1", "n2"), "`h3reg2`, none (section 8)")])
+def test_experiments_fit_tables_are_the_histories(section, folder, runs, baseline):
+    """Sections 15 to 17: each run's selected epoch (SPEC's score), its validation figures there, its
     lowest validation RegL1 and its training RegL1 at the last epoch are its history's."""
     rows = section_rows(section)
-    baseline = f"`h3reg2`, none ({'binary' if section == 15 else 'benchmark scenes'}, section 8)"
     histories = {baseline: json.loads((RESULTS / "streaming_earlier3_reg2_none.history.json").read_text())} | {
         f"`{run}`": epoch_rows(f"{folder}/{run}.history.json") for run in runs}
     for label, history in histories.items():
@@ -416,3 +429,23 @@ def test_experiments_fit_tables_are_the_histories(section, folder, runs):
         assert len(history) == 20, label
         assert rows[label] == [f"epoch {best['epoch']}"] + [f"{v:.3f}" for v in (
             best["val_acc"], best["val_regl1"], min(r["val_regl1"] for r in history), last["train_regl1"])], label
+
+
+def test_experiments_section_17_error_table_is_the_saved_errors():
+    """Section 17's error table (mean errors, their correlations, the shapes' share) is what
+    averaging/errors.py makes of the saved per-clip errors, and those errors average to the
+    metrics files' RegL1-level figures (the average of the 3 is the avg3 run's own errors)."""
+    spec = importlib.util.spec_from_file_location("errors", RESULTS / "experiments" / "averaging" / "errors.py")
+    errors = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(errors)
+    clips = json.loads((RESULTS / "experiments" / "averaging" / "unseen_errors.json").read_text())
+    table = errors.table(clips)
+    rows = section_rows(17)
+    for line in table[2:]:
+        first, *rest = cells(line)
+        assert rows[first] == rest, first
+    assert len(clips) == 900
+    for run in errors.RUNS:  # jelly E over all jelly clips, as the run's metrics file has it
+        mean = np.mean([abs(c["errors"][run]["youngs_modulus"]) for c in clips.values() if c["family"] == "jelly"])
+        saved = json.loads((RESULTS / "experiments" / "averaging" / f"{run}_unseen.json").read_text())
+        assert mean == pytest.approx(saved["frames"]["25"]["families"]["jelly"]["all"]["youngs_modulus"], abs=1e-5), run
