@@ -33,10 +33,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_ws" / "src" / "ad_sim")]
 
 from ad_estimator.cli import HelpFormatter, positive  # noqa: E402
-from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask  # noqa: E402
+from ad_estimator.images import MAX_IMAGE_PIXELS, ImageRejected, image_to_mask  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel  # noqa: E402
 from ad_estimator.parameters import PARAMETERS as NODE  # noqa: E402
 from ad_estimator.window import FrameWindow  # noqa: E402
+from ad_sim.rosbag import BagError  # noqa: E402
 from common import falling_disc_clips, json_out, load_model, percentiles  # noqa: E402  (benchmarks/, the script's folder)
 
 TOPIC = "/latency_benchmark/mask"
@@ -45,11 +46,14 @@ EPISODE_NS = 1_500_000_000
 
 
 def episode_masks(bag: Path | None, count: int) -> list[np.ndarray]:
-    """Mask clips (25, H, W) uint8: from a bag's first camera if given, else a synthetic falling disc."""
+    """Mask clips (25, H, W) uint8: from a bag's first camera if given (its levels as recorded, so a grey-mask
+    bag stays grey; the estimator converts them as the node does), else a synthetic falling disc."""
     if bag is None:
         return list(falling_disc_clips(count))
     from ad_estimator.evaluate import episode_frames
-    clips = [np.stack([image_to_mask(m, MAX_IMAGE_PIXELS) for _, m in frames]) for _, frames in episode_frames(bag)]
+    clips = [np.stack([image_to_mask(m, MAX_IMAGE_PIXELS, None) for _, m in frames]) for _, frames in episode_frames(bag)]
+    if not clips:
+        raise ValueError(f"{bag} holds no episode with mask frames (recorded from the simulator?)")
     return [clips[i % len(clips)] for i in range(count)]
 
 
@@ -71,15 +75,15 @@ def run_no_ros(args, model: EstimatorModel) -> dict:
             image = FakeImage(mask)
             encode_time = [0.0]
 
-            def encode(binary, earlier):
+            def encode(converted, earlier):
                 encode_start = time.perf_counter()
-                feature = model.encode(binary, earlier)
+                feature = model.encode(converted, earlier)
                 encode_time[0] = time.perf_counter() - encode_start
                 return feature
 
             start = time.perf_counter()
-            binary = image_to_mask(image, MAX_IMAGE_PIXELS)
-            for out in window.add(k * FRAME_NS, binary, encode):
+            converted = image_to_mask(image, MAX_IMAGE_PIXELS, model.info.input_threshold())
+            for out in window.add(k * FRAME_NS, converted, encode):
                 model_start = time.perf_counter()
                 model.predict(out.features, out.valid)
                 # as the node reports it: this frame's encoding + the temporal head (or the clip)
@@ -200,6 +204,11 @@ def main(argv=None) -> int:
     if args.provider != "cpu" and not args.no_ros:
         parser.error("--provider cuda is measured with --no-ros (the node's execution_provider parameter does the same)")
     model = load_model(parser, args.model, threads=args.threads, provider=args.provider)
+    if args.bag is not None:  # read before any timing, so that a bad bag is one line here
+        try:
+            episode_masks(args.bag, 1)
+        except (BagError, ImageRejected, ValueError) as exc:
+            parser.error(f"--bag: {exc}")
     result = run_no_ros(args, model) if args.no_ros else run_ros(args)
     result["setup"] = {"model": str(args.model), "model_id": model.model_id, "kind": model.info.kind,
                        "mode": "no-ros" if args.no_ros else "ros", "policy": args.policy, "every_n": args.every_n,

@@ -16,7 +16,10 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
 def script(name: str):
-    """A benchmark script imported by path (as `python benchmarks/<name>.py` runs it)."""
+    """A benchmark script imported by path (as `python benchmarks/<name>.py` runs it, with its own folder
+    on sys.path for `common`)."""
+    if str(BENCHMARKS) not in sys.path:
+        sys.path.insert(0, str(BENCHMARKS))
     spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -41,6 +44,8 @@ CASES = [
     ("latency", ["--episodes", "0"], "argument --episodes: expected a whole number >= 1"),
     ("latency", ["--threads", "0"], "argument --threads: expected a whole number >= 1"),
     ("latency", ["--no-ros", "--model", "{tmp}/missing.onnx"], "model file not found: {tmp}/missing.onnx"),
+    ("latency", ["--no-ros", "--bag", "{tmp}"], "--bag: bag folder {tmp} holds no .mcap file"),
+    ("latency", ["--bag", "{tmp}"], "--bag: bag folder {tmp} holds no .mcap file"),  # ROS mode too, before any node
     ("mpm_device_check", ["--output", "{tmp}/x.npz", "--scenes", "0"], "argument --scenes: expected a whole number"),
 ]
 if not wp.is_cuda_available():  # a Warp device this machine lacks, before any simulation

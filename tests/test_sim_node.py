@@ -69,6 +69,36 @@ def test_recorded_bag_equals_generated_bag(ros_domain_id, tmp_path, instance_fil
     assert BagReader(tmp_path / "recorded").topics() == BagReader(tmp_path / "gen" / "instances-0of1").topics()
 
 
+def test_coverage_masks_recorded_from_the_node_equal_generated_ones_and_train_as_grey(ros_domain_id, tmp_path, caplog):
+    """coverage_masks:=true publishes the grey masks that `generate --coverage-masks` writes, message for
+    message, and a student's grey-mask cache reads their levels without warning that the bag is 0/255."""
+    from training import data
+
+    one = tmp_path / "one.yaml"
+    one.write_text(yaml.safe_dump(INSTANCES[:1]))
+    recorder = start("record", ros_domain_id, tmp_path / "record.log", output=str(tmp_path / "recorded"))
+    node = start("node", ros_domain_id, tmp_path / "node.log", instances=str(one), real_time_factor=0.0,
+                 wait_for_subscribers=1, coverage_masks=True)
+    generated = subprocess.run(
+        [str(ADRUN), "ad_sim", "generate", "--instances", str(one), "--out", str(tmp_path / "gen"), "--quiet",
+         "--coverage-masks"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=240)
+    assert generated.returncode == 0, generated.stderr
+    assert node.wait(240) == 0, (tmp_path / "node.log").read_text()
+    assert stop(recorder) == 0
+    key = lambda m: (m.log_time_ns, m.topic)  # noqa: E731
+    recorded = sorted(BagReader(tmp_path / "recorded"), key=key)
+    theirs = sorted(BagReader(tmp_path / "gen" / "one-0of1"), key=key)
+    assert [key(m) for m in recorded] == [key(m) for m in theirs] and len(recorded) == 1 + 25 * 3  # + particles, mask, camera_info
+    for mine, other in zip(recorded, theirs):
+        assert as_plain(mine.message) == as_plain(other.message), key(mine)
+    levels = np.concatenate([np.frombuffer(bytes(m.message.data), np.uint8) for m in recorded if m.topic.endswith("mask")])
+    assert ((levels > 0) & (levels < 255)).sum() > 100  # grey edges
+    with caplog.at_level("WARNING", logger=data.log.name):
+        grey = data.load_dataset(tmp_path / "recorded", tmp_path / "cache", progress=False, coverage=True)
+    assert not [m for m in caplog.messages if m.startswith("grey-mask videos asked for")], caplog.messages
+    assert ((grey.video(0) > 0) & (grey.video(0) < 255)).any()
+
+
 def test_pacing_and_clean_shutdown(rclpy_context, ros_domain_id, tmp_path):
     from rcl_interfaces.srv import SetParameters
     from rclpy.executors import SingleThreadedExecutor

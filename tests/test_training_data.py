@@ -1,6 +1,8 @@
 """training.data: real MCAP bags (written by ad_sim's own writer and message code) -> cache."""
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -65,6 +67,22 @@ def test_cache_is_reused_and_keyed_by_content(bags, tmp_path, monkeypatch):
     assert len(keys) == 2
     other = write_synthetic_bag(tmp_path / "other", 4, views=2, seed=4)
     assert data.bag_key(other) not in keys
+
+
+def test_grey_masks_asked_of_a_binary_bag_warn_once_naming_it(tmp_path, caplog):
+    """load_dataset(coverage=True) reads the masks themselves: a bag of 0/255 masks is named in a warning
+    as it is cached (however it was recorded), a grey bag is not, and the cached bag is not warned again."""
+    grey, _ = write_coverage_bag(tmp_path / "bags" / "grey", 2, seed=7)
+    binary, _ = write_coverage_bag(tmp_path / "bags" / "binary", 2, seed=7, binary=True)
+    with caplog.at_level(logging.WARNING, logger=data.log.name):
+        data.load_dataset(tmp_path / "bags", tmp_path / "cache", progress=False, coverage=True)
+    warned = [m for m in caplog.messages if m.startswith("grey-mask videos asked for")]
+    assert len(warned) == 1 and f"the masks of {binary} are 0/255 only" in warned[0], caplog.messages
+    assert str(grey) not in warned[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger=data.log.name):
+        data.load_dataset(tmp_path / "bags", tmp_path / "cache", progress=False, coverage=True)
+    assert not [m for m in caplog.messages if m.startswith("grey-mask videos asked for")]
 
 
 def test_coverage_videos_keep_grey_levels_in_their_own_cache(tmp_path, monkeypatch):

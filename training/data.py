@@ -45,7 +45,7 @@ from ad_sim.materials import (
 )
 from ad_sim.messages import POINT_FIELDS, instance_topic, particles_topic
 from ad_sim.render import MASK_SIZE
-from ad_sim.rosbag import METADATA_FILE, BagError, BagReader, BagUnreadable, group_episodes, read_metadata
+from ad_sim.rosbag import BagError, BagReader, BagUnreadable, group_episodes
 
 log = logging.getLogger(__name__)
 
@@ -71,15 +71,11 @@ def _mcap_files(bag: Path) -> list[Path]:
     return [bag] if bag.is_file() else sorted(bag.glob("*.mcap"))
 
 
-def _coverage_bag(bag: Path) -> bool:
-    """Whether `ad_sim.generate --coverage-masks` wrote the bag (its metadata.yaml's custom_data says so;
-    a lone .mcap, or a bag whose metadata.yaml is unusable, cannot say). Reads that file only: a
-    BagReader would scan the folder and warn about it a second time."""
-    try:
-        custom = read_metadata(bag / METADATA_FILE).get("custom_data") or {}
-    except ValueError:
-        return False
-    return custom.get("masks") == "coverage"
+def has_grey_levels(episodes: list[dict]) -> bool:
+    """Whether any mask of the decoded episodes holds a level other than 0 and 255: grey masks (the
+    simulator's coverage masks, from `ad_sim.generate --coverage-masks` or the sim node's
+    coverage_masks, recorded either way) always do at the object's edges."""
+    return any(np.any((video != 0) & (video != 255)) for ep in episodes for video in ep["videos"].values())
 
 
 def bag_key(bag: Path) -> str:
@@ -336,9 +332,6 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True,
     cache_dir = Path(cache_dir)
     shards, problems = [], []
     paths = find_bags(bags)
-    if coverage and (binary := [str(p) for p in paths if not _coverage_bag(p)]):
-        log.warning("grey-mask videos asked for, but %d bag(s) were not written with coverage masks (ad_sim.generate "
-                    "--coverage-masks), so their videos are 0/255: %s", len(binary), ", ".join(binary[:3]))
     for path in tqdm(paths, desc="cache bags", disable=not progress, unit="bag"):
         folder = cache_dir / (bag_key(path) + ("-coverage" if coverage else ""))
         if (folder / "meta.json").exists():
@@ -355,6 +348,10 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True,
                 problems += [*source_problems, f"{path} holds no complete episode; left out"]
                 log.warning("%s", problems[-1])
                 continue
+            if coverage and not has_grey_levels(episodes):  # said once, as the bag is cached
+                log.warning("grey-mask videos asked for, but the masks of %s are 0/255 only: it was not recorded "
+                            "with coverage masks (ad_sim.generate --coverage-masks, or the sim node's coverage_masks "
+                            "parameter), so a grey-mask student learns thresholded masks from it", path)
             _write_shard(folder, episodes, source_problems)
         problems += source_problems
         shards.append(folder)

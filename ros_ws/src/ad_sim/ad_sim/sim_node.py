@@ -145,6 +145,8 @@ PARAMETERS = (
     ("instance_seed", 0, "single instance: seed of pose, velocity, views and sampling"),
     ("real_time_factor", 1.0, "playback speed over simulated time; 0: as fast as subscribers acknowledge"),
     ("views", 0, "cameras published per episode; 0: the instances' own (4 train, 1 evaluation)"),
+    ("coverage_masks", False, "mask pixels hold their area coverage of the 512x512 render (0..255, grey edges) "
+                              "instead of 0/255, for a grey-mask model (ad.mask_levels coverage); > 127 is the binary mask"),
     ("device", "cpu", "Warp device: cpu | cuda | cuda:<n>"),
     ("batch", 4, "episodes simulated per batch, ahead of playback"),
     ("loop", False, "start over after the last episode"),
@@ -227,7 +229,8 @@ class SimNode(Node):
             while not self.stop.is_set():
                 for start in range(0, len(self.instances), batch):
                     episodes = simulate_batch(self.instances[start : start + batch], device=self.param("device"),
-                                              views=views, cancelled=self.stop.is_set)
+                                              views=views, coverage_masks=self.param("coverage_masks"),
+                                              cancelled=self.stop.is_set)
                     for episode in episodes:
                         while not self.stop.is_set():
                             try:
