@@ -19,6 +19,7 @@ from ad_estimator.metrics import (
     format_table,
     json_text,
     regl1,
+    regl1_from_errors,
     uncertainty_calibration,
     write_report,
 )
@@ -303,3 +304,26 @@ def test_saved_episodes_score_again_as_they_were_scored(tmp_path):
     scored = compute_metrics(saved)
     assert scored["confusion"] == measured["confusion"] and scored["regl1"] == pytest.approx(measured["regl1"], abs=1e-12)
     assert uncertainty_calibration(saved)["jelly"]["youngs_modulus"]["n"] == measured["confusion"][0][0]
+
+
+def test_regl1_implied_by_a_rows_errors_is_the_regl1_of_its_clips():
+    """With every clip classified correctly and the families equally many, the RegL1 that the table's
+    error cells imply is exactly the clips' RegL1; in log10 cells the same errors read ln(10) times
+    smaller; over other ranges (the union of the families') it normalises by those."""
+    rng = np.random.default_rng(3)
+    true, pred = [], []
+    for row in [JELLY, PLASTICINE, SAND] * 4:
+        row = np.array(row)
+        true.append(row)
+        noisy = row * np.exp(rng.normal(0, 0.3, 4))  # E, yield off by a log factor; nu, phi off by a fraction
+        pred.append(np.where(np.isnan(row), 1.0, noisy))
+    pred = Predictions([0, 1, 2] * 4, np.array(true), _onehot([0, 1, 2] * 4), np.array(pred))
+    m = compute_metrics(pred)
+    cells = {f: m["families"][f]["correct"] for f in FAMILIES}
+    assert regl1_from_errors(cells) == pytest.approx(m["regl1"], rel=1e-12)
+    log10_cells = {f: {n: (e / math.log(10) if n in ("youngs_modulus", "yield_stress") else e) for n, e in c.items()}
+                   for f, c in cells.items()}
+    assert regl1_from_errors(log10_cells, log_base=10) == pytest.approx(m["regl1"], rel=1e-12)
+    wide = {f: {n: (lo, lo + 2 * (hi - lo), s) if s == "linear" else (lo, lo * (hi / lo) ** 2, s)
+                for n, (lo, hi, s) in r.items()} for f, r in family_ranges().items()}
+    assert regl1_from_errors(cells, wide) == pytest.approx(m["regl1"] / 2, rel=1e-12)

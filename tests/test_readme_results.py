@@ -449,3 +449,34 @@ def test_experiments_section_17_error_table_is_the_saved_errors():
         mean = np.mean([abs(c["errors"][run]["youngs_modulus"]) for c in clips.values() if c["family"] == "jelly"])
         saved = json.loads((RESULTS / "experiments" / "averaging" / f"{run}_unseen.json").read_text())
         assert mean == pytest.approx(saved["frames"]["25"]["families"]["jelly"]["all"]["youngs_modulus"], abs=1e-5), run
+
+
+def test_readme_paper_regl1_paragraph_is_what_the_rows_imply():
+    """The README's reading of the paper's RegL1 cell: the RegL1 that the paper's row and the shipped row
+    imply (regl1_from_errors) over each family's ranges and over the union, in ln and log10 units."""
+    from ad_estimator.metrics import family_ranges, regl1_from_errors
+    from ad_sim.materials import PARAMETER_RANGES
+
+    readme = (ROOT / "README.md").read_text()
+    rows = table_rows(readme, "### Unseen objects")
+    names = {"jelly": ("youngs_modulus", "poissons_ratio"),
+             "plasticine": ("youngs_modulus", "poissons_ratio", "yield_stress"), "sand": ("friction_angle",)}
+    columns = {("jelly", "youngs_modulus"): 1, ("jelly", "poissons_ratio"): 2, ("plasticine", "youngs_modulus"): 4,
+               ("plasticine", "poissons_ratio"): 5, ("plasticine", "yield_stress"): 6, ("sand", "friction_angle"): 8}
+
+    def cells_of(label):
+        return {f: {n: float(rows[label][columns[f, n]]) for n in ns} for f, ns in names.items()}
+
+    paper, shipped = cells_of("paper, Ours (Full)"), cells_of(next(r for r in rows if r.startswith("**shipped**")))
+    union = {f: {n: PARAMETER_RANGES[n] for n in r} for f, r in family_ranges().items()}
+    paragraph = readme.split("**The paper's RegL1 cell is not in SPEC 8's units.**", 1)[1].split("\n\n", 1)[0]
+    paragraph = " ".join(paragraph.split())
+    figures = {"gives 0.082, not 0.067": regl1_from_errors(paper),
+               "log10 errors it gives 0.103": regl1_from_errors(paper, log_base=10),
+               "(the union), 0.060 (ln)": regl1_from_errors(paper, union),
+               "or 0.076 (log10)": regl1_from_errors(paper, union, log_base=10),
+               "shipped row gives 0.150": regl1_from_errors(shipped)}
+    for text, value in figures.items():
+        assert text in paragraph, text
+        assert text.split("0.", 1)[1][:3] == f"{value:.3f}"[2:], (text, value)
+    assert rows["paper, Ours (Full)"][-1] == "0.067"

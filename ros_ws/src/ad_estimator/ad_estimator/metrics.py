@@ -155,6 +155,29 @@ def regl1(pred: Predictions) -> np.ndarray:
     return out
 
 
+def regl1_from_errors(errors: dict[str, dict[str, float]], ranges: dict | None = None,
+                      log_base: float = math.e) -> float:
+    """The RegL1 that a table row's parameter errors imply (family -> parameter -> its cell: log-MAE in
+    `log_base` for E and yield, MAE for nu, MAE in degrees for phi), were every clip classified
+    correctly and the families equally many: regl1's normalisation of each error (over
+    `ranges`, family -> parameter -> (lo, hi, scale), by default each family's own, family_ranges()),
+    averaged over the family's parameters, then over the families. It is how a paper's RegL1
+    cell is checked against its own row."""
+    ranges = family_ranges() if ranges is None else ranges
+    per_family = []
+    for family, cells in errors.items():
+        normalised = []
+        for name, error in cells.items():
+            lo, hi, scale = ranges[family][name]
+            if ERROR_KIND[name] == "log_mae":
+                error = error * math.log(log_base)  # natural-log units, as _normalise
+            elif ERROR_KIND[name] == "mae_deg":
+                error = math.radians(error)
+            normalised.append(error / (math.log(hi / lo) if scale == "log" else hi - lo))
+        per_family.append(sum(normalised) / len(normalised))
+    return sum(per_family) / len(per_family)
+
+
 def parameter_error(name: str, pred: np.ndarray, true: np.ndarray) -> float:
     if len(true) == 0:
         return float("nan")
