@@ -232,6 +232,41 @@ def test_a_damaged_bag_points_at_recover(setup, tmp_path, capsys):
     assert [r["p_jelly"] for r in rows] == [r["p_jelly"] for r in read_csv(tmp_path / "i.csv")[:2]]
 
 
+def test_a_message_that_does_not_decode_costs_only_itself_with_recover(setup, tmp_path, capsys):
+    """One mask message recorded as 8 bytes of CDR (its chunk's CRC is valid): without --recover the bag
+    is refused, naming the topic and log time, and the hint is --recover; with it, only that frame is
+    skipped (its episode's window fills from the others) and estimate and evaluate keep every episode."""
+    model, intact = setup
+    bad_stamp = messages.frame_stamp(0, 5)
+    original = BagWriter.write
+
+    def write(self, topic, log_time_ns, message, *args):
+        if topic == messages.mask_topic(0) and log_time_ns == bad_stamp:
+            message = b"\x00\x01\x00\x00\x01\x00\x00\x00"
+        return original(self, topic, log_time_ns, message, *args)
+
+    BagWriter.write = write
+    try:
+        bag = write_test_bag(tmp_path / "bad_cdr")
+    finally:
+        BagWriter.write = original
+    where = rf"the message on /ad_sim/view_0/mask logged at {bad_stamp / 1e9:.3f} s does not decode"
+    with pytest.warns(UserWarning, match=rf"bag skipped: .*{where} .*pass --recover"):
+        assert run(model, bag, "--out", tmp_path / "e.csv") == 1
+    assert "Pass --recover to read the undamaged part" in capsys.readouterr().err
+    with pytest.warns(UserWarning, match=rf"{where} .*it was skipped"):
+        assert run(model, bag, "--recover", "--out", tmp_path / "r.csv") == 0
+    rows = read_csv(tmp_path / "r.csv")
+    assert [r["episode"] for r in rows] == ["1", "2", "3"]
+    assert run(model, intact, "--out", tmp_path / "i.csv") == 0  # the undamaged episodes: as from an intact copy
+    assert [r["p_jelly"] for r in rows[1:]] == [r["p_jelly"] for r in read_csv(tmp_path / "i.csv")[1:]]
+    with pytest.warns(UserWarning, match=rf"{where} .*it was skipped"):
+        assert evaluate.main(["--model", str(model), "--bags", str(bag), "--recover", "--quiet",
+                              "--out", str(tmp_path / "ev")]) == 0
+    scored = json.loads((tmp_path / "ev" / "predictions.json").read_text())
+    assert len(scored["frames"]["25"]) == 3 and any("does not decode" in p for p in scored["source_problems"])
+
+
 def test_a_bag_with_nothing_readable_is_skipped_saying_so(setup, tmp_path, capsys):
     """Cut inside its first chunk, a bag holds nothing that --recover can read: it is skipped with that
     reason (not as a bag without the topic), the other bags' estimates are written, and the exit status is 1."""
@@ -276,8 +311,10 @@ def test_clear_errors_before_any_work(setup, tmp_path, capsys):
         (["--output-policy", "anytime", "--min-frames", "0"], "min_frames must be positive"),
         (["--threads", "0"], "threads must be positive"),
         (["--mask-threshold", "300"], "mask_threshold is a pixel value in 0..254"),
-        (["--idle-flush", "-1"], "idle_flush is seconds >= 0"),
-        (["--gap-threshold", "inf"], "gap_threshold must be a finite number of seconds"),
+        (["--idle-flush", "-1"], "idle_flush is seconds in 0..1e+06 (0: never), got -1.0"),
+        (["--idle-flush", "inf"], "idle_flush is seconds in 0..1e+06 (0: never), got inf"),  # was an OverflowError
+        (["--gap-threshold", "inf"], "gap_threshold must be a number of seconds up to 1e+06, got inf"),
+        (["--gap-threshold", "1e300"], "gap_threshold must be a number of seconds up to 1e+06, got 1e+300"),
         (["--slot-tolerance", "3"], "slot_tolerance"),
         (["--out", tmp_path], "is a folder; pass a .csv file name"),
         # --out is a CSV file: the messages ask for one, not for a folder
@@ -343,3 +380,30 @@ def test_an_estimate_the_model_cannot_make_is_warned_and_the_others_kept(setup, 
     with pytest.warns(UserWarning, match=r"episode 2: no estimate: the model's outputs are not finite"):
         assert run(model_path, bag, "--out", tmp_path / "e.csv") == 0
     assert [r["episode"] for r in read_csv(tmp_path / "e.csv")] == ["1", "3"]
+
+
+def test_an_out_that_is_not_an_estimate_csv_is_refused_and_a_failed_write_keeps_the_old_one(setup, tmp_path, capsys):
+    """--out naming a file estimate did not write (here the bag's own .mcap) is refused before any work
+    and the file is untouched; a write that fails (a 512-byte file size limit) leaves the earlier CSV whole."""
+    import subprocess
+    import sys
+
+    model, bag = setup
+    copy = tmp_path / "bag"
+    shutil.copytree(bag, copy)
+    recording = next(copy.glob("*.mcap"))
+    before = recording.read_bytes()
+    for victim in (recording, copy / "metadata.yaml"):
+        assert run(model, copy, "--out", victim) == 1
+        assert f"--out {victim} exists and is not a CSV that estimate wrote" in capsys.readouterr().err
+    assert recording.read_bytes() == before
+    good = tmp_path / "e.csv"
+    assert run(model, bag, "--out", good) == 0
+    written = good.read_bytes()
+    assert len(written) > 512
+    limit = "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (512, 512)); "
+    code = (limit + "from ad_estimator import estimate; sys.exit(estimate.main(sys.argv[1:]))")
+    proc = subprocess.run([sys.executable, "-c", code, "--model", str(model), "--quiet", str(bag), "--out", str(good)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and f"estimate: cannot write {good} (File too large)" in proc.stderr, proc.stderr
+    assert good.read_bytes() == written and sorted(p.name for p in tmp_path.iterdir()) == ["bag", "e.csv"]

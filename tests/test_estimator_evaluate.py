@@ -135,6 +135,10 @@ def test_clear_errors(setup, tmp_path, capsys):
         with pytest.raises(SystemExit) as exit_info:
             evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", frames])
         assert exit_info.value.code == 2 and message in capsys.readouterr().err
+    for threads in ("0", "-3"):  # were taken, and handed to onnxruntime
+        with pytest.raises(SystemExit) as exit_info:
+            evaluate.main(["--model", str(model), "--bags", str(bag), "--threads", threads])
+        assert exit_info.value.code == 2 and "argument --threads: expected a whole number >= 1" in capsys.readouterr().err
 
 
 def test_truncated_recording_needs_recover_and_then_gives_its_complete_episodes(setup, tmp_path, capsys):
@@ -309,3 +313,37 @@ def test_an_unusable_out_is_refused_before_any_work(setup, tmp_path, capsys):
     assert run_main(model, tmp_path / "no_bag", tmp_path / "new" / "report") == 1
     assert "no_bag does not exist" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()  # nothing is created for a run that does no work
+
+
+def test_a_report_that_cannot_be_written_leaves_the_earlier_one_whole(setup, tmp_path):
+    """The report is written beside --out and moved in once complete: under a file size limit that stops
+    it half way (the plots), the earlier report's files are all as they were, and nothing is left over."""
+    import subprocess
+    import sys
+
+    model, bag = setup
+    out = tmp_path / "report"
+    assert run_main(model, bag, out) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert {"report.md", "metrics.json", "predictions.json", "confusion.png", "pred_vs_true.png"} <= set(before)
+    code = ("import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000)); "
+            "from ad_estimator import evaluate; sys.exit(evaluate.main(sys.argv[1:]))")
+    proc = subprocess.run([sys.executable, "-c", code, "--model", str(model), "--bags", str(bag), "--quiet",
+                           "--title", "another run", "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and f"evaluate: cannot write the report to {out} (" in proc.stderr, proc.stderr
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]  # the partial report is gone
+
+
+def test_ground_truth_of_another_material_is_left_out_saying_so(setup, tmp_path, capsys):
+    """An episode whose ground truth names a material the metrics do not know: left out of every row
+    with a warning naming it (it was a traceback after all the inference), the others scored."""
+    model, _ = setup
+    bag = write_test_bag(tmp_path / "rubber", episodes=[("rubber", EPISODES[0][1]), *EPISODES[1:]])
+    with pytest.warns(UserWarning, match=r"episode test-disc-rubber-0000: left out of every row: its material "
+                                         r"'rubber' is none of jelly, plasticine, sand"):
+        assert run_main(model, bag, tmp_path / "out") == 0
+    saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert [p["true_material"] for p in saved["frames"]["25"]] == ["plasticine", "sand"]
+    assert saved["left_out"]["25"][0]["reason"] == "its material 'rubber' is none of jelly, plasticine, sand"
+    assert "episodes left out of the rows K = 25: 1" in capsys.readouterr().out

@@ -316,8 +316,11 @@ def test_incomplete_metadata_names_file_and_keys(tmp_path):
 def test_streaming_without_frame_encoder_names_it(tmp_path):
     head = build_streaming_model(tmp_path, name="lonely")
     (tmp_path / "lonely.frame.onnx").unlink()
-    with pytest.raises(ModelError, match="lonely.frame.onnx"):
+    with pytest.raises(ModelError) as error:
         EstimatorModel.load(head)
+    # the head the user passed is right: the message names the missing encoder, not "set --model"
+    assert str(error.value) == (f"{head} is a streaming model whose frame encoder lonely.frame.onnx (its "
+                                f"ad.frame_encoder metadata) is missing from {tmp_path}; copy the two files together")
 
 
 def _with_metadata(path, **entries):

@@ -2,6 +2,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import shutil
+import tempfile
+from pathlib import Path
 
 
 def count(text: str) -> int:
@@ -51,3 +56,19 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
                 or "default" in (action.help or ""):
             return action.help
         return super()._get_help_string(action)
+
+
+@contextlib.contextmanager
+def staged(out: Path):
+    """Yields a new folder beside `out` to write the output files in; on success they are moved into the
+    folder `out` (each os.replace is atomic), so a failure or a kill half way (a full disk) leaves
+    what `out` held before as it was, instead of a mix of new and old files."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        yield staging
+        out.mkdir(exist_ok=True)
+        for written in staging.iterdir():
+            os.replace(written, out / written.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)

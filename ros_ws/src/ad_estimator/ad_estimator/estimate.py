@@ -15,7 +15,9 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import os
 import sys
+import tempfile
 import warnings
 from collections import Counter
 from dataclasses import dataclass
@@ -34,6 +36,9 @@ from ad_sim.rosbag import BagDamaged, BagError, BagReader, one_line_warnings
 # The node's parameters that apply offline, offered as options of the same names (--gap-threshold ...).
 OPTIONS = ("output_policy", "min_frames", "every_n", "gap_threshold", "slot_tolerance", "idle_flush",
            "mask_threshold", "max_image_pixels", "threads")
+
+
+FIRST_COLUMNS = ("bag", "episode", "episode_start_s")  # of every CSV estimate writes, whatever the model
 
 
 @dataclass
@@ -101,7 +106,7 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
 
 def columns(model: EstimatorModel) -> list[str]:
     info = model.info
-    return (["bag", "episode", "episode_start_s", "oldest_stamp_s", "newest_stamp_s", "frames_used", "complete",
+    return ([*FIRST_COLUMNS, "oldest_stamp_s", "newest_stamp_s", "frames_used", "complete",
              "material"] + [f"p_{c}" for c in info.class_names] + list(info.parameter_names)
             + [f"{p}_sigma" for p in info.parameter_names])
 
@@ -116,6 +121,13 @@ def csv_row(row: Row) -> list:
     return ([row.bag, out.episode, out.episode_start_ns / 1e9, out.oldest_stamp_ns / 1e9, out.newest_stamp_ns / 1e9,
              out.frames_used, out.complete, est.material] + [float(p) for p in est.probabilities]
             + [cell(v) for v in est.parameters] + [cell(v) for v in est.uncertainties])
+
+
+def is_estimate_csv(path: Path) -> bool:
+    """Whether `path` starts with the header estimate writes (its first columns, whatever the model)."""
+    start = ",".join(FIRST_COLUMNS)
+    with open(path, "rb") as f:
+        return f.read(len(start)) == start.encode()
 
 
 def summary_line(row: Row) -> str:
@@ -162,6 +174,9 @@ def main(argv: list[str] | None = None) -> int:
         out = args.out or Path("reports") / "estimate" / f"{model.model_id}.csv"
         if out.is_dir():
             raise ValueError(f"--out {out} is a folder; pass a .csv file name")
+        if out.is_file() and not is_estimate_csv(out):  # e.g. a bag's own .mcap or metadata.yaml
+            raise ValueError(f"--out {out} exists and is not a CSV that estimate wrote; pass another --out, "
+                             "so that it is not overwritten")
         check_out(out, file="a .csv file")
         bags = find_bags(args.bags)
     except (ModelError, BagError, ValueError) as exc:
@@ -195,10 +210,16 @@ def main(argv: list[str] | None = None) -> int:
     replaced = " (it replaced the file of an earlier run)" if out.exists() else ""  # the default name is per model
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        with open(out, "w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(columns(model))
-            writer.writerows(csv_row(r) for r in rows)
+        # written beside it, then renamed over it: a full disk or a kill leaves the earlier CSV whole
+        handle, partial = tempfile.mkstemp(prefix=f".{out.name}.partial-", dir=out.parent)
+        try:
+            with os.fdopen(handle, "w", newline="") as f:
+                writer = csv.writer(f)
+                writer.writerow(columns(model))
+                writer.writerows(csv_row(r) for r in rows)
+            os.replace(partial, out)
+        finally:
+            Path(partial).unlink(missing_ok=True)
     except OSError as exc:
         print(f"estimate: cannot write {out} ({exc.strerror}); pass another --out", file=sys.stderr)
         return 1

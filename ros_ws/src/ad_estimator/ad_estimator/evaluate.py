@@ -22,7 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ad_estimator import metrics
-from ad_estimator.cli import HelpFormatter
+from ad_estimator.cli import HelpFormatter, positive, staged
 from ad_estimator.images import MAX_IMAGE_PIXELS, ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC
@@ -187,6 +187,12 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
     skipped; an episode whose window holds fewer than K frame slots is left out of the K row.
     Each of these is noted in `result` and warned about, naming the bag and episode."""
     where = f"{bag}: episode {instance.episode_id}"
+    if instance.material not in metrics.FAMILIES:  # no ground truth the metrics can score
+        reason = f"its material {instance.material!r} is none of {', '.join(metrics.FAMILIES)}"
+        warnings.warn(f"{where}: left out of every row: {reason}")
+        for k in frame_counts:
+            result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id, "reason": reason})
+        return
     frames, masks, rejected = accepted_frames(bag, instance, frames, model.info.input_threshold())
     if rejected:
         result.skipped_frames += rejected
@@ -240,6 +246,22 @@ def check_out(out: Path, file: str = "") -> None:
                          "that you can write in") from exc
 
 
+def write_report(folder: Path, by_frames: dict, title: str, evaluation: Evaluation, model: EstimatorModel,
+                 args: argparse.Namespace) -> dict:
+    """The report (metrics.write_report) and predictions.json in `folder`; returns the metrics."""
+    report = metrics.write_report(by_frames, folder, title)
+    if problems := evaluation.problems():
+        with open(folder / "report.md", "a") as md:
+            md.write(f"\nInput problems: {problems} (listed in predictions.json).\n")
+    (folder / "predictions.json").write_text(metrics.json_text(
+        {"model_id": model.model_id, "model_path": str(args.model), "topic": args.topic,
+         "parameter_names": list(model.info.parameter_names),
+         "frames": {str(k): [vars(p) for p in v] for k, v in evaluation.predictions.items()},
+         "source_problems": evaluation.source_problems, "skipped_frames": evaluation.skipped_frames,
+         "left_out": {str(k): v for k, v in evaluation.left_out.items()}}, indent=1))
+    return report
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="ros2 run ad_estimator evaluate", formatter_class=HelpFormatter,
@@ -260,7 +282,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=None,
                         help="report folder (default reports/evaluate/<model id>)")
     parser.add_argument("--title", default=None, help="report title")
-    parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
+    parser.add_argument("--threads", type=positive, default=1, help="onnxruntime intra-op threads")
     parser.add_argument("--recover", action="store_true",
                         help="read truncated or damaged files (a killed recorder) up to their last complete chunk")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -298,16 +320,8 @@ def main(argv: list[str] | None = None) -> int:
     by_frames = {k: to_metrics(v, model.info.parameter_names) for k, v in results.items() if v}
     replaced = " (it replaced the report of an earlier run)" if (out / "report.md").exists() else ""
     try:
-        report = metrics.write_report(by_frames, out, title)
-        if problems:
-            with open(out / "report.md", "a") as md:
-                md.write(f"\nInput problems: {problems} (listed in predictions.json).\n")
-        (out / "predictions.json").write_text(metrics.json_text(
-            {"model_id": model.model_id, "model_path": str(args.model), "topic": args.topic,
-             "parameter_names": list(model.info.parameter_names),
-             "frames": {str(k): [vars(p) for p in v] for k, v in results.items()},
-             "source_problems": evaluation.source_problems, "skipped_frames": evaluation.skipped_frames,
-             "left_out": {str(k): v for k, v in evaluation.left_out.items()}}, indent=1))
+        with staged(out) as folder:  # an earlier report stays whole if this one cannot be written
+            report = write_report(folder, by_frames, title, evaluation, model, args)
     except OSError as exc:
         print(f"evaluate: cannot write the report to {out} ({exc}); free space there or pass another --out",
               file=sys.stderr)

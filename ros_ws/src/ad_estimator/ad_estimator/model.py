@@ -360,6 +360,9 @@ class EstimatorModel:
                              f"({path.name.replace('.frame.onnx', '.onnx')}) instead")
         _require_io(session, path, ("embeddings", "valid"), ("logits", "params"))
         _require_slot_count(session, path, "embeddings", info.frame_count)
+        if not info.frame_encoder.is_file():  # the head was copied without its encoder: say so, not "set --model"
+            raise ModelError(f"{path} is a streaming model whose frame encoder {info.frame_encoder.name} (its "
+                             f"ad.frame_encoder metadata) is missing from {path.parent}; copy the two files together")
         frame_session = _session(info.frame_encoder, threads, provider)
         _require_io(frame_session, info.frame_encoder, ("frame",), ("embedding",))
         _require_dims(frame_session, info.frame_encoder, "frame", (2, 3), info.input_size, "ad.input_size")

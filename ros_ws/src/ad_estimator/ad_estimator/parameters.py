@@ -3,11 +3,9 @@ frame window they configure for a model. ROS-free, so that the node (where each 
 and the offline `estimate` (where the window's and images' ones are options) share one definition."""
 from __future__ import annotations
 
-import math
-
 from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS
 from ad_estimator.window import (DEFAULT_EVERY_N, DEFAULT_GAP_THRESHOLD, DEFAULT_MIN_FRAMES, DEFAULT_SLOT_TOLERANCE,
-                                 FrameWindow)
+                                 MAX_SECONDS, FrameWindow)
 
 DEFAULT_INPUT_TOPIC = "/ad_sim/view_0/mask"  # the simulator's first camera: what the node reads unless remapped
 DEFAULT_IDLE_FLUSH = 0.3  # s; replayed and simulated streams pause > 0.5 s between episodes, frames 0.025 s apart
@@ -49,10 +47,10 @@ def check_parameters(values: dict) -> None:
         raise ValueError(f"{', '.join(positive)} must be positive")
     if "mask_threshold" in values and not 0 <= values["mask_threshold"] < 255:
         raise ValueError(f"mask_threshold is a pixel value in 0..254 (of 255), got {values['mask_threshold']}")
-    if "idle_flush" in values and not values["idle_flush"] >= 0:
-        raise ValueError(f"idle_flush is seconds >= 0 (0: never), got {values['idle_flush']}")
-    if "diagnostics_period" in values and not 0 < values["diagnostics_period"] < math.inf:
-        raise ValueError(f"diagnostics_period is seconds > 0, got {values['diagnostics_period']}")
+    if "idle_flush" in values and not 0 <= values["idle_flush"] <= MAX_SECONDS:
+        raise ValueError(f"idle_flush is seconds in 0..{MAX_SECONDS:g} (0: never), got {values['idle_flush']}")
+    if "diagnostics_period" in values and not 0 < values["diagnostics_period"] <= MAX_SECONDS:
+        raise ValueError(f"diagnostics_period is seconds in (0, {MAX_SECONDS:g}], got {values['diagnostics_period']}")
 
 
 def model_window(values: dict, info) -> FrameWindow:

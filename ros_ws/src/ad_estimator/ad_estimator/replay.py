@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import math
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import rclpy
@@ -32,7 +32,8 @@ from ad_estimator.cli import HelpFormatter
 from ad_sim.dds import non_ros_args, use_fast_heartbeat
 from ad_sim.rosbag import BagError, BagReader, one_line_warnings
 
-# Used when a bag has no metadata.yaml (a lone .mcap): what the simulator offers.
+# Used when a bag has no metadata.yaml (a lone .mcap), and for what its offered_qos_profiles leave out or make
+# unusable: what the simulator offers.
 DEFAULT_QOS = {"reliability": "reliable", "durability": "volatile", "history": "keep_last", "depth": 100}
 TRANSIENT_LOCAL_TOPICS = ("/ad_sim/instance",)
 # Older rosbag2 metadata stores the rmw enum values instead of names.
@@ -42,19 +43,55 @@ _DURABILITY = {"transient_local": DurabilityPolicy.TRANSIENT_LOCAL, "volatile": 
                1: DurabilityPolicy.TRANSIENT_LOCAL, 2: DurabilityPolicy.VOLATILE}
 _HISTORY = {"keep_last": HistoryPolicy.KEEP_LAST, "keep_all": HistoryPolicy.KEEP_ALL,
             1: HistoryPolicy.KEEP_LAST, 2: HistoryPolicy.KEEP_ALL}
+MAX_DEPTH = 2**31 - 1  # rclpy refuses a larger one (a TypeError from its rmw_qos_profile_t)
+# time.sleep raises OverflowError past about 292 years (and --rate 1e-300 makes any gap that long): --delay is
+# kept to a day and --rate to 1000 times slower than recorded; the pacing sleeps go in steps of at most a day,
+# so that even a bag with a gap of centuries between log times waits rather than fails.
+MAX_DELAY_S = 86400.0
+MIN_RATE = 0.001
+MAX_SLEEP_S = 86400.0
 
 
-def qos_from_recorded(profiles) -> QoSProfile:
-    """QoSProfile from rosbag2's offered_qos_profiles (a list, or the YAML string older bags hold)."""
+def qos_from_recorded(topic: str, profiles) -> QoSProfile:
+    """QoSProfile for a topic from rosbag2's offered_qos_profiles (a list, or the YAML string older bags hold).
+
+    A recorded setting that cannot be used (a malformed entry, system default or unknown, as rosbag2 may record
+    from Fast DDS for discovered publishers, depth 0 with keep_last) takes the topic's default instead, with a
+    warning naming the topic: a bag recorded elsewhere still plays, with the rest of its recorded QoS."""
+    default = dict(DEFAULT_QOS, durability="transient_local" if topic in TRANSIENT_LOCAL_TOPICS else "volatile")
+    unusable = []
     if isinstance(profiles, str):
-        profiles = yaml.safe_load(profiles) or []
-    profile = dict(DEFAULT_QOS, **(profiles[0] if profiles else {}))
-    try:
-        return QoSProfile(reliability=_RELIABILITY[profile["reliability"]],
-                          durability=_DURABILITY[profile["durability"]],
-                          history=_HISTORY[profile["history"]], depth=max(1, int(profile["depth"])))
-    except KeyError as exc:
-        raise BagError(f"unknown QoS setting {exc} in offered_qos_profiles {profiles}") from exc
+        try:
+            profiles = yaml.safe_load(profiles)
+        except yaml.YAMLError as exc:  # its own message runs over several lines
+            unusable.append(f"not YAML ({getattr(exc, 'problem', None) or type(exc).__name__})")
+            profiles = None
+    if profiles and not (isinstance(profiles, list) and isinstance(profiles[0], dict)):
+        unusable.append(f"not a list of profiles ({profiles!r:.60})")
+        profiles = None
+    recorded = profiles[0] if profiles else {}
+
+    def setting(name, table):
+        value = recorded.get(name, default[name])
+        # bool is an int to Python (True would read as enum value 1); a list or mapping is not hashable
+        if isinstance(value, (str, int)) and not isinstance(value, bool) and value in table:
+            return table[value]
+        unusable.append(f"{name} {value!r}")
+        return table[default[name]]
+
+    reliability, durability = setting("reliability", _RELIABILITY), setting("durability", _DURABILITY)
+    history, depth = setting("history", _HISTORY), recorded.get("depth", default["depth"])
+    if not (isinstance(depth, int) and not isinstance(depth, bool) and 0 < depth <= MAX_DEPTH):
+        if history == HistoryPolicy.KEEP_LAST:  # keep_all has no use for a depth
+            unusable.append(f"depth {depth!r}")
+        depth = default["depth"]
+    qos = QoSProfile(reliability=reliability, durability=durability, history=history, depth=depth)
+    if unusable:
+        used = ", ".join(policy.name.lower() for policy in (reliability, durability, history))
+        warnings.warn(f"unusable QoS for {topic} in metadata.yaml ({', '.join(unusable)}); replaying it as {used}"
+                      f"{f', depth {depth}' if history == HistoryPolicy.KEEP_LAST else ''} (the default for what "
+                      "was unusable)")
+    return qos
 
 
 def message_class(type_name: str):
@@ -73,11 +110,9 @@ def recorded_topics(reader: BagReader) -> dict[str, tuple[str, QoSProfile]]:
         result = {}
         for entry in reader.metadata.get("topics_with_message_count", []):
             meta = entry["topic_metadata"]
-            result[meta["name"]] = (meta["type"], qos_from_recorded(meta.get("offered_qos_profiles") or []))
+            result[meta["name"]] = (meta["type"], qos_from_recorded(meta["name"], meta.get("offered_qos_profiles")))
         return result
-    return {topic: (type_name, qos_from_recorded([
-        {"durability": "transient_local" if topic in TRANSIENT_LOCAL_TOPICS else "volatile"}]))
-        for topic, type_name in reader.topics().items()}
+    return {topic: (type_name, qos_from_recorded(topic, None)) for topic, type_name in reader.topics().items()}
 
 
 class Replayer:
@@ -125,9 +160,9 @@ class Replayer:
             for topic, log_time, data in self.reader:
                 if start_log is None:
                     start_wall, start_log = time.monotonic(), log_time
-                delay = start_wall + (log_time - start_log) / 1e9 / rate - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
+                due = start_wall + (log_time - start_log) / 1e9 / rate
+                while (delay := due - time.monotonic()) > 0:
+                    time.sleep(min(delay, MAX_SLEEP_S))
                 if not rclpy.ok(context=self.node.context):
                     break
                 if self.clock is not None and log_time != self.last_clock:  # the time first, then what happened at it
@@ -170,13 +205,19 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         help="play truncated or damaged files (a killed recorder) up to their last complete chunk")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
-    if not args.rate > 0:
-        parser.error("--rate must be > 0")
-    if not 0 <= args.delay < math.inf:
-        parser.error("--delay must be a finite number of seconds >= 0")
+    if not args.rate >= MIN_RATE:
+        parser.error(f"--rate must be at least {MIN_RATE} (a second of the bag in about 17 minutes)")
+    if not 0 <= args.delay <= MAX_DELAY_S:
+        parser.error(f"--delay must be a number of seconds from 0 to {MAX_DELAY_S:.0f} (a day)")
     if not args.wait_timeout >= 0:
         parser.error("--wait-timeout must be a number of seconds >= 0")
     return args
+
+
+def published(replayer: Replayer, loop: bool) -> str:
+    """'N of TOTAL messages' so far; the total is per pass (so not with --loop), and unknown without metadata.yaml."""
+    of = f" of {replayer.total}" if replayer.total and not loop else ""
+    return f"{replayer.published}{of} messages"
 
 
 def main(args=None) -> int:
@@ -201,13 +242,14 @@ def main(args=None) -> int:
               + ("" if count else " (it holds none on the replayed topics)")
               + ("" if acked else " (some reliable subscribers did not acknowledge everything)"), file=sys.stderr)
     except (BagError, TimeoutError) as exc:
-        print(f"replay: {exc}", file=sys.stderr)
+        # a bag damaged part way: what went out before it is part of the outcome
+        stopped = f"stopped after {published(replayer, options.loop)} from {options.bag}: " \
+            if replayer is not None and replayer.published else ""
+        print(f"replay: {stopped}{exc}", file=sys.stderr)
         return 1
     except (KeyboardInterrupt, ExternalShutdownException):  # stopping a replay early is a normal way to end it
         if replayer is not None:
-            # per pass, and unknown without metadata.yaml
-            of = f" of {replayer.total}" if replayer.total and not options.loop else ""
-            print(f"replay: stopped after {replayer.published}{of} messages from {options.bag}", file=sys.stderr)
+            print(f"replay: stopped after {published(replayer, options.loop)} from {options.bag}", file=sys.stderr)
     except RCLError:
         if rclpy.ok():
             raise

@@ -110,6 +110,9 @@ class WindowStats:
     restarts: Counter = field(default_factory=Counter)  # by reason
 
 
+MAX_SECONDS = 1e6  # bound of the window's durations in seconds (11.6 days), far inside int64 nanoseconds
+
+
 class FrameWindow:
     """Online episode window; see the module docstring for the rules."""
 
@@ -128,8 +131,8 @@ class FrameWindow:
         if not 0 < slot_tolerance <= 2:
             raise ValueError("slot_tolerance is a fraction of the frame interval in (0, 2]")
         self.interval_ns = int(round(frame_interval * 1e9))
-        if not math.isfinite(gap_threshold):
-            raise ValueError(f"gap_threshold must be a finite number of seconds, got {gap_threshold}")
+        if not gap_threshold <= MAX_SECONDS:  # stamps are int64 ns; NaN fails here too
+            raise ValueError(f"gap_threshold must be a number of seconds up to {MAX_SECONDS:g}, got {gap_threshold}")
         if not gap_threshold * 1e9 > self.interval_ns * slot_tolerance:
             raise ValueError("gap_threshold must exceed slot_tolerance * frame_interval")
         self.frame_count = frame_count

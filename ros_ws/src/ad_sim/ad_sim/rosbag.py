@@ -563,6 +563,10 @@ def _natural_key(path: Path) -> list:
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
 
 
+class _Undecodable(Exception):
+    """One message's bytes do not decode with its topic's schema (BagReader decides what that costs)."""
+
+
 class BagReader:
     """Iterates (topic, log_time_ns, message) over a bag folder or a single .mcap file,
     in log-time order (ties in file order), decoding with mcap_ros2 (no ROS runtime).
@@ -681,7 +685,18 @@ class BagReader:
         for log_time, order, channel, data in self._scan_file(scan):
             if self.topic_filter is not None and channel.topic not in self.topic_filter:
                 continue
-            message = data if self.raw else self._decode(scan, channel, data)
+            if self.raw:
+                message = data
+            else:
+                try:
+                    message = self._decode(scan, channel, data)
+                except _Undecodable as exc:  # one bad message, not a bad bag: --recover skips just it
+                    where = f"{scan.path}: the message on {channel.topic} logged at {log_time / 1e9:.3f} s"
+                    if not self.recover:
+                        raise BagDamaged(f"{where} does not decode ({exc}). To skip it and report it, "
+                                         f"{RECOVER_ADVICE}") from exc
+                    self._warn(f"{where} does not decode ({exc}); it was skipped")
+                    continue
             yield log_time, (file_index, order), channel.topic, message
 
     def _decode(self, scan: _FileScan, channel: Channel, data: bytes) -> Any:
@@ -703,7 +718,7 @@ class BagReader:
         try:
             return decoder(data)
         except Exception as exc:
-            raise BagError(f"{scan.path}: message on {channel.topic} does not decode as {scan.schemas[channel.schema_id].name}: {exc}") from exc
+            raise _Undecodable(f"as {scan.schemas[channel.schema_id].name}: {exc}") from exc
 
     def _warn(self, message: str) -> None:
         # topics() and iteration scan a summary-less file alike: one warning per problem.
