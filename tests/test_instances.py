@@ -143,6 +143,11 @@ GOOD = {"shape": "sphere", "material": "plasticine", "parameters": {"youngs_modu
         ({"views": 0}, r"field 'views': expected a positive integer"),
         ({"colour": "red"}, r"unknown field\(s\) \['colour'\]"),
         ({"seed": None}, r"field 'seed'"),
+        # wrong types and huge ints were tracebacks (an unhashable list, a float overflow)
+        ({"shape": ["sphere"]}, r"entry 1 \(\['sphere'\]\): field 'shape': unknown shape \['sphere'\]"),
+        ({"material": ["jelly"]}, r"field 'material': unknown material \['jelly'\]"),
+        ({"parameters": {**GOOD["parameters"], "youngs_modulus": 10**400}},
+         r"field 'parameters.youngs_modulus': expected a finite number, got 1000"),
     ],
 )
 def test_instance_file_errors_name_entry_and_field(tmp_path, change, message):

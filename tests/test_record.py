@@ -150,3 +150,31 @@ def test_recorder_records_only_the_topics_asked_for(rclpy_context, ros_domain_id
     assert len(read) == 1 + 25 + 1
     hello = [m for m in read if m.topic == "/chatter"]
     assert hello[0].message.data == "hello" and hello[0].log_time_ns >= before
+
+
+def test_a_stop_is_not_held_off_by_a_topic_that_keeps_publishing(rclpy_context, ros_domain_id, tmp_path):
+    """SIGINT while /chatter keeps arriving every 20 ms: the recorder drains for at most DRAIN_MAX and
+    closes a readable bag (it waited for 0.3 s of silence, so it ran as long as the publisher did)."""
+    from std_msgs.msg import String
+
+    from ad_sim.record_node import DRAIN_MAX
+
+    node = Publisher(rclpy_context).node
+    chatter = node.create_publisher(String, "/chatter", 10)
+    try:
+        recorder = start("record", ros_domain_id, tmp_path / "r.log", output=str(tmp_path / "bag"), topics=["/chatter"])
+        wait_for_log(tmp_path / "r.log", r"subscribed to /chatter ", recorder)
+        for _ in range(50):
+            chatter.publish(String(data="x"))
+            time.sleep(0.02)
+        recorder.send_signal(signal.SIGINT)
+        sent = time.monotonic()
+        while recorder.poll() is None and time.monotonic() - sent < DRAIN_MAX + 20:
+            chatter.publish(String(data="x"))
+            time.sleep(0.02)
+        waited = time.monotonic() - sent
+        assert recorder.poll() == 0, (tmp_path / "r.log").read_text()
+        assert waited < DRAIN_MAX + 10  # generous for a loaded machine; before, it never stopped while fed
+    finally:
+        node.destroy_node()
+    assert len(list(BagReader(tmp_path / "bag"))) >= 50

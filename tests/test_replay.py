@@ -7,24 +7,27 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from ad_msgs.msg import MaterialEstimate, SimInstance
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 
 from ad_estimator import evaluate, replay
 from ad_estimator.model import BUNDLED_MODEL
-from ad_sim.rosbag import BagReader
-from estimator_bags import write_test_bag
+from ad_sim.rosbag import BagError, BagReader
+from estimator_bags import instance_dict, write_test_bag
 from estimator_models import build_streaming_model
 from estimator_ros import ros_context, wait_for
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLES = REPO / "bags" / "samples"
+SAMPLE_BAG = SAMPLES / "unseen-masks-0of1"  # a recording of the simulator node: 306 messages on 3 topics
 MASK_TOPIC = "/ad_sim/view_0/mask"
 INSTANCE_TOPIC = "/ad_sim/instance"
 pytestmark = pytest.mark.ros
@@ -45,6 +48,12 @@ def stamp_ns(stamp):
 @pytest.fixture(scope="module")
 def test_bag(tmp_path_factory):
     return write_test_bag(tmp_path_factory.mktemp("bags") / "three_episodes")
+
+
+@pytest.fixture
+def sample_bag(tmp_path):
+    """A copy of a committed sample bag, to damage."""
+    return shutil.copytree(SAMPLE_BAG, tmp_path / "bag")
 
 
 def test_replay_keeps_bytes_timing_and_qos(test_bag, ros_domain_id):
@@ -107,6 +116,25 @@ def test_replay_truncated_recording_with_recover(tmp_path, ros_domain_id):
     assert 0 < published < 3 * 26, out  # some, not all, of 3 episodes x (instance + 25 masks)
 
 
+def test_replay_of_a_bag_corrupt_part_way_says_how_much_it_published(sample_bag, ros_domain_id):
+    """Without --recover the replay stops at the damage, on one line that says what already went out."""
+    (file,) = sample_bag.glob("*.mcap")
+    with file.open("r+b") as f:  # inside a chunk past the first ones
+        f.seek(30_000)
+        f.write(b"\xff" * 4)
+    readable = 0
+    with pytest.raises(BagError, match="corrupt record"):
+        for _ in BagReader(sample_bag, raw=True):
+            readable += 1
+    assert 0 < readable < 306
+    proc = run("ad_estimator.replay", str(sample_bag), "--quiet", "--delay", "0", "--rate", "100")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and len(out.splitlines()) == 1, out
+    assert out.startswith(f"replay: stopped after {readable} of 306 messages from {sample_bag}: {file}: corrupt "
+                          "record"), out
+    assert "--recover" in out, out
+
+
 def test_replay_of_a_bag_with_nothing_readable_fails_saying_so(tmp_path, ros_domain_id):
     """Cut inside its first chunk: --recover plays nothing, which is an error saying why (not "published 0")."""
     bag = write_test_bag(tmp_path / "cut")
@@ -134,12 +162,66 @@ def test_replay_of_a_bag_with_an_unusable_metadata_yaml(test_bag, tmp_path, ros_
     assert f"published 78 messages from {bag}" in out, out
 
 
+@pytest.mark.parametrize("topic, recorded, unusable, expected", [
+    # what rosbag2 may record from Fast DDS (UNKNOWN history, depth 0 for a discovered publisher), and in the older
+    # numeric form (rmw enums: 0 system default): the rest of the recorded QoS stays
+    (INSTANCE_TOPIC, [{"history": "unknown", "depth": 0, "reliability": "reliable", "durability": "transient_local"}],
+     "history 'unknown', depth 0", ("reliable", "transient_local", "keep_last", 100)),
+    (MASK_TOPIC, [{"history": 0, "depth": 0, "reliability": 2, "durability": 2}],
+     "history 0, depth 0", ("best_effort", "volatile", "keep_last", 100)),
+    (MASK_TOPIC, [{"history": "keep_last", "depth": "abc", "reliability": "best_effort", "durability": "volatile"}],
+     "depth 'abc'", ("best_effort", "volatile", "keep_last", 100)),
+    (MASK_TOPIC, [{"history": "keep_last", "depth": 5, "reliability": "system_default", "durability": ["x"]}],
+     "reliability 'system_default', durability ['x']", ("reliable", "volatile", "keep_last", 5)),
+    # malformed as a whole: the topic's default (ground truth latched, as the simulator offers it)
+    (INSTANCE_TOPIC, "garbage", "not a list of profiles ('garbage')",
+     ("reliable", "transient_local", "keep_last", 100)),
+    (INSTANCE_TOPIC, ["x"], "not a list of profiles (['x'])", ("reliable", "transient_local", "keep_last", 100)),
+    (MASK_TOPIC, {"depth": 5}, "not a list of profiles ({'depth': 5})", ("reliable", "volatile", "keep_last", 100)),
+    (MASK_TOPIC, "- history: [keep_last\n  depth: 'x", "not YAML (expected ',' or ']', but got ':')",
+     ("reliable", "volatile", "keep_last", 100)),
+], ids=["fast_dds_unknown", "numeric_system_default", "depth_not_a_number", "unknown_enums", "string",
+        "list_of_strings", "mapping", "broken_yaml_string"])
+def test_replay_takes_the_default_for_unusable_recorded_qos(sample_bag, topic, recorded, unusable, expected):
+    """A setting that cannot be used falls back to the topic's default with one warning naming the topic."""
+    metadata_file = sample_bag / "metadata.yaml"
+    metadata = yaml.safe_load(metadata_file.read_text())
+    for entry in metadata["rosbag2_bagfile_information"]["topics_with_message_count"]:
+        if entry["topic_metadata"]["name"] == topic:
+            entry["topic_metadata"]["offered_qos_profiles"] = recorded
+    metadata_file.write_text(yaml.safe_dump(metadata))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        qos = replay.recorded_topics(BagReader(sample_bag, raw=True))[topic][1]
+    assert [str(w.message) for w in caught] == [
+        f"unusable QoS for {topic} in metadata.yaml ({unusable}); replaying it as {', '.join(expected[:3])}, "
+        f"depth {expected[3]} (the default for what was unusable)"]
+    assert (qos.reliability, qos.durability, qos.history, qos.depth) == (
+        ReliabilityPolicy[expected[0].upper()], DurabilityPolicy[expected[1].upper()],
+        HistoryPolicy[expected[2].upper()], expected[3])
+
+
+def test_replay_of_a_bag_with_unusable_recorded_qos_plays_it_all(sample_bag, ros_domain_id):
+    """The command line: a warning line for that topic, then the whole bag (it was refused, naming no topic)."""
+    metadata_file = sample_bag / "metadata.yaml"
+    metadata_file.write_text(metadata_file.read_text().replace("history: keep_last\n        depth: 100",
+                                                               "history: unknown\n        depth: 0", 1))
+    proc = run("ad_estimator.replay", str(sample_bag), "--quiet", "--delay", "0", "--rate", "100")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and out.splitlines() == [
+        f"warning: unusable QoS for {INSTANCE_TOPIC} in metadata.yaml (history 'unknown', depth 0); replaying it as "
+        "reliable, transient_local, keep_last, depth 100 (the default for what was unusable)",
+        f"replay: published 306 messages from {sample_bag}"], out
+
+
 @pytest.mark.parametrize("options, message", [
-    (["--delay", "-1"], "--delay must be a finite number of seconds >= 0"),
-    (["--delay", "inf"], "--delay must be a finite number of seconds >= 0"),
+    (["--delay", "-1"], "--delay must be a number of seconds from 0 to 86400 (a day)"),
+    (["--delay", "inf"], "--delay must be a number of seconds from 0 to 86400 (a day)"),
+    (["--delay", "1e300"], "--delay must be a number of seconds from 0 to 86400 (a day)"),  # time.sleep overflowed
     (["--wait-timeout", "-5"], "--wait-timeout must be a number of seconds >= 0"),
     (["--wait-timeout", "nan"], "--wait-timeout must be a number of seconds >= 0"),
-    (["--rate", "0"], "--rate must be > 0"),
+    (["--rate", "0"], "--rate must be at least 0.001"),
+    (["--rate", "1e-300"], "--rate must be at least 0.001"),  # the pacing sleep overflowed
 ])
 def test_replay_refuses_bad_timing_options_before_starting(test_bag, options, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -191,6 +273,30 @@ def test_replay_stops_cleanly_on_signals(test_bag, sig, ros_domain_id):
     assert proc.returncode == 0 and "Traceback" not in out, out
     if sig == signal.SIGINT:  # says how far it got (SIGTERM ends the loop through rclpy: "published N")
         assert re.search(rf"replay: stopped after \d+ of 78 messages from {re.escape(str(test_bag))}", out), out
+
+
+def test_replay_waits_out_a_gap_too_long_for_one_sleep(tmp_path, ros_domain_id):
+    """Log times 317 years apart (past what time.sleep takes, OverflowError): the replay waits until stopped."""
+    from ad_sim import messages
+    from ad_sim.rosbag import BagWriter
+
+    with BagWriter(tmp_path / "gap") as writer:
+        writer.add_topic(INSTANCE_TOPIC, messages.INSTANCE_TYPE)
+        for index, log_time in enumerate([0, 10**19]):
+            writer.write(INSTANCE_TOPIC, log_time, instance_dict(index, "jelly", {}, stamp_ns=index))
+    with ros_context(ros_domain_id) as (context, executor):
+        node = Node("replay_listener", context=context)
+        instances = []
+        node.create_subscription(SimInstance, INSTANCE_TOPIC, instances.append, RELIABLE)
+        executor.add_node(node)
+        proc = run("ad_estimator.replay", str(tmp_path / "gap"), "--quiet", "--delay", "0", "--wait-for",
+                   INSTANCE_TOPIC)
+        assert wait_for(lambda: len(instances) == 1, timeout=30)
+        time.sleep(0.5)  # into the wait for the second message
+        assert proc.poll() is None, proc.communicate()[0]
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=20)
+    assert proc.returncode == 0 and out == f"replay: stopped after 1 of 2 messages from {tmp_path / 'gap'}\n", out
 
 
 def test_replay_loop_plays_the_bag_again_until_stopped(test_bag, ros_domain_id):

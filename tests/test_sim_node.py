@@ -170,6 +170,7 @@ def test_single_instance_from_parameters_and_bad_parameters(ros_domain_id, tmp_p
     ("node", {"seed": 1.5}, "Trying to set parameter 'seed' to '1.5' of type 'DOUBLE', expecting type 'INTEGER'"),
     ("node", {"views": -1}, "views must be >= 0, got -1"),
     ("node", {"batch": 0}, "batch must be >= 1, got 0"),
+    ("node", {"qos_depth": 2**31}, "qos_depth must be <= 2147483647, got 2147483648"),
     ("node", {"qos_depth": -3}, "qos_depth must be >= 1, got -3"),
     ("node", {"real_time_factor": "abc"}, "real_time_factor must be a number, got 'abc'"),
     ("node", {"shape": "sphere", "youngs_modulus": "abc"}, "youngs_modulus must be a number, got 'abc'"),
@@ -185,6 +186,16 @@ def test_bad_parameter_values_are_one_line(executable, params, expected, ros_dom
     assert process.wait(60) == 2
     log = (tmp_path / "bad.log").read_text()
     assert log.splitlines() == [f"ad_sim {executable}: " + log.split(": ", 1)[1].rstrip()] and expected in log, log
+
+
+def test_a_device_this_machine_lacks_is_refused_at_start(ros_domain_id, tmp_path):
+    """Before anything is published (it failed when the first batch simulated, exit 1); Warp's own
+    start-up lines may come first."""
+    process = start("node", ros_domain_id, tmp_path / "bad.log", device="bogus", real_time_factor=0)
+    assert process.wait(60) == 2
+    log = (tmp_path / "bad.log").read_text()
+    assert log.splitlines()[-1].startswith("ad_sim node: Warp device 'bogus' is not available; this machine has: "), log
+    assert "episode 0" not in log and "Traceback" not in log
 
 
 def test_ctrl_c_does_not_wait_for_a_recorder_that_died(rclpy_context, ros_domain_id, tmp_path):

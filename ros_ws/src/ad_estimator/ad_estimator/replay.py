@@ -214,7 +214,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return args
 
 
-def published(replayer: Replayer, loop: bool) -> str:
+def messages_published(replayer: Replayer, loop: bool) -> str:
     """'N of TOTAL messages' so far; the total is per pass (so not with --loop), and unknown without metadata.yaml."""
     of = f" of {replayer.total}" if replayer.total and not loop else ""
     return f"{replayer.published}{of} messages"
@@ -243,13 +243,14 @@ def main(args=None) -> int:
               + ("" if acked else " (some reliable subscribers did not acknowledge everything)"), file=sys.stderr)
     except (BagError, TimeoutError) as exc:
         # a bag damaged part way: what went out before it is part of the outcome
-        stopped = f"stopped after {published(replayer, options.loop)} from {options.bag}: " \
-            if replayer is not None and replayer.published else ""
+        stopped = "" if replayer is None or not replayer.published else \
+            f"stopped after {messages_published(replayer, options.loop)} from {options.bag}: "
         print(f"replay: {stopped}{exc}", file=sys.stderr)
         return 1
     except (KeyboardInterrupt, ExternalShutdownException):  # stopping a replay early is a normal way to end it
         if replayer is not None:
-            print(f"replay: stopped after {published(replayer, options.loop)} from {options.bag}", file=sys.stderr)
+            print(f"replay: stopped after {messages_published(replayer, options.loop)} from {options.bag}",
+                  file=sys.stderr)
     except RCLError:
         if rclpy.ok():
             raise

@@ -232,6 +232,16 @@ def drawn_per_family(size: str, split: str, per_family: int, seed: int,
         chosen += [of_family[i] for i in sorted(picks)]
     return chosen
 
+def _finite_number(value) -> bool:
+    """An int or float that is finite as a float (an int too large for one overflows, and is no number here)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
+
+
 def _validate_parameters(family: str, given, where: str) -> dict[str, float]:
     if not isinstance(given, dict):
         raise ValueError(f"{where}: field 'parameters' must be a mapping of name -> value, got {given!r}")
@@ -247,7 +257,7 @@ def _validate_parameters(family: str, given, where: str) -> dict[str, float]:
                 f"{where}: field 'parameters.{name}': {family} has no such parameter; "
                 f"it takes {list(materials.FAMILY_PARAMETERS[family])}"
             )
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        if not _finite_number(value):
             raise ValueError(f"{where}: field 'parameters.{name}': expected a finite number, got {value!r}")
         spec = ranges[name]
         if isinstance(spec, tuple):
@@ -277,9 +287,9 @@ def instance_from_entry(entry, index: int, source: str) -> Instance:
         if name not in entry:
             raise ValueError(f"{where}: missing field '{name}'")
     shape, material = entry["shape"], entry["material"]
-    if shape not in shape_names():
+    if not isinstance(shape, str) or shape not in shape_names():  # (a list is not even hashable)
         raise ValueError(f"{where}: field 'shape': unknown shape {shape!r}; `generate --list-shapes` lists them")
-    if material not in materials.FAMILIES:
+    if not isinstance(material, str) or material not in materials.FAMILIES:
         raise ValueError(f"{where}: field 'material': unknown material {material!r}; expected one of {materials.FAMILIES}")
     seed = entry["seed"]
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**64:

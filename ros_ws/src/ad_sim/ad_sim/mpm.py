@@ -457,14 +457,15 @@ def spatial_order(points: np.ndarray, scene_ids: np.ndarray) -> np.ndarray:
     return np.argsort(key, kind="stable")
 
 
-def check_device(device: str) -> None:
+def check_device(device: str, use_cpu: str = "--device cpu") -> None:
     """A one-line ValueError for a Warp device this machine lacks, for command lines to give before
-    any work (Warp fails only at its first use of the device, "cuda" without a driver with a RuntimeError)."""
+    any work (Warp fails only at its first use of the device, "cuda" without a driver with a RuntimeError);
+    `use_cpu` is how the caller's users ask for the CPU instead."""
     available = [d.alias for d in wp.get_devices()]
     if device in available or (device == "cuda" and wp.is_cuda_available()):
         return
     if device.startswith("cuda") and not wp.is_cuda_available():
-        raise ValueError(f"Warp device {device!r} is not available: no CUDA GPU or driver on this machine; use --device cpu")
+        raise ValueError(f"Warp device {device!r} is not available: no CUDA GPU or driver on this machine; use {use_cpu}")
     raise ValueError(f"Warp device {device!r} is not available; this machine has: {', '.join(available)}")
 
 

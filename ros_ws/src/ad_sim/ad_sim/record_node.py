@@ -31,6 +31,7 @@ from .dds import declare_parameters, number
 from .sim_node import handle_help, import_message_class
 
 DRAIN_IDLE = 0.3  # s without incoming work after a stop signal before the bag is closed
+DRAIN_MAX = 2.0  # s at most of that draining: a topic that keeps publishing must not hold the stop off
 
 
 def _duration(duration) -> dict:
@@ -161,9 +162,13 @@ class RecordNode(Node):
 def main(args: list[str] | None = None) -> None:
     handle_help("ros2 run ad_sim record", __doc__, PARAMETERS, args)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
+    stop, stop_now = threading.Event(), threading.Event()  # a second Ctrl-C skips the draining
+
+    def on_signal(*_):
+        (stop_now if stop.is_set() else stop).set()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, on_signal)
     node = None
     try:
         node = RecordNode()
@@ -173,7 +178,8 @@ def main(args: list[str] | None = None) -> None:
             executor.spin_once(timeout_sec=0.1)
         # Take what already arrived before closing the bag.
         idle_since, seen = time.monotonic(), sum(node.received.values())
-        while time.monotonic() - idle_since < DRAIN_IDLE:
+        give_up = idle_since + DRAIN_MAX
+        while time.monotonic() - idle_since < DRAIN_IDLE and time.monotonic() < give_up and not stop_now.is_set():
             executor.spin_once(timeout_sec=0.05)
             if sum(node.received.values()) != seen:
                 idle_since, seen = time.monotonic(), sum(node.received.values())

@@ -42,6 +42,7 @@ from .dds import declare_parameters, non_ros_args, number, use_fast_heartbeat
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
 ACK_SLICE = 0.1  # s between looks at the stop flag while waiting for acknowledgements
+MAX_QOS_DEPTH = 2**31 - 1
 WORKER_JOIN_TIMEOUT = 10.0  # s; a stopped worker ends within one simulated frame, well under this
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
 
@@ -191,6 +192,12 @@ class SimNode(Node):
                             ("wait_for_subscribers", 0)):
             if self.param(name) < least:
                 raise ValueError(f"{name} must be >= {least}, got {self.param(name)}")
+        if self.param("qos_depth") > MAX_QOS_DEPTH:  # rclpy would fail inside its QoS struct
+            raise ValueError(f"qos_depth must be <= {MAX_QOS_DEPTH}, got {self.param('qos_depth')}")
+        if self.param("device") != "cpu":  # (Warp always has its CPU; checking starts Warp, with its banner)
+            from .mpm import check_device
+
+            check_device(self.param("device"), use_cpu="-p device:=cpu")  # now, not when the first batch simulates
         self.prefix = self.param("topic_prefix").rstrip("/")
         self.instances = self._load_instances()
         self.views = self.param("views") or max(instance.views for instance in self.instances)
