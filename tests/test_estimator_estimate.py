@@ -407,3 +407,35 @@ def test_an_out_that_is_not_an_estimate_csv_is_refused_and_a_failed_write_keeps_
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and f"estimate: cannot write {good} (File too large)" in proc.stderr, proc.stderr
     assert good.read_bytes() == written and sorted(p.name for p in tmp_path.iterdir()) == ["bag", "e.csv"]
+
+
+def test_a_bag_named_twice_is_read_once(setup, tmp_path):
+    """The same bag as a folder, again, and by its .mcap file: one bag's estimates, and a warning."""
+    model, bag = setup
+    mcap = next(bag.glob("*.mcap"))
+    with pytest.warns(UserWarning, match=r"2 bag\(s\) given more than once .* are read once"):
+        assert run(model, bag, bag, mcap, "--out", tmp_path / "e.csv") == 0
+    assert len(read_csv(tmp_path / "e.csv")) == len(EPISODES)
+
+
+def test_ctrl_c_is_one_line_and_writes_nothing(setup, tmp_path):
+    """A real SIGINT while estimate works through many bags: status 130, one line, no CSV (was a
+    KeyboardInterrupt traceback)."""
+    import signal
+    import subprocess
+    import sys
+
+    model, bag = setup
+    copies = [str(shutil.copytree(bag, tmp_path / "bags" / f"b{i}")) for i in range(200)]
+    proc = subprocess.Popen([sys.executable, "-m", "ad_estimator.estimate", "--model", str(model), *copies,
+                             "--out", str(tmp_path / "e.csv")], stderr=subprocess.PIPE)
+    seen = b""
+    while b"bags:" not in seen:  # the progress bar: start-up is over, the bags are being read
+        chunk = proc.stderr.read1(4096)
+        assert chunk, f"estimate ended before reading the bags: {seen!r}"
+        seen += chunk
+    proc.send_signal(signal.SIGINT)
+    _, rest = proc.communicate(timeout=60)
+    err = (seen + rest).decode()
+    assert proc.returncode == 130 and err.strip().splitlines()[-1] == "estimate: interrupted; nothing was written", err
+    assert "Traceback" not in err and not (tmp_path / "e.csv").exists()

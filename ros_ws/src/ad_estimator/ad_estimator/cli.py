@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
@@ -72,3 +74,18 @@ def staged(out: Path):
             os.replace(written, out / written.name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+
+
+def interruptible(prog: str):
+    """Decorates a tool's main(argv) -> int: a Ctrl-C ends it with one line and status 130 instead of a
+    traceback. For tools that write their output only at the end (staged), so nothing is half written."""
+    def decorate(main):
+        @functools.wraps(main)
+        def run(argv=None):
+            try:
+                return main(argv)
+            except KeyboardInterrupt:
+                print(f"{prog}: interrupted; nothing was written", file=sys.stderr)
+                return 130
+        return run
+    return decorate

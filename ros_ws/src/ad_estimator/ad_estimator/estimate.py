@@ -25,7 +25,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ad_estimator.cli import HelpFormatter
+from ad_estimator.cli import HelpFormatter, interruptible
 from ad_estimator.evaluate import check_image_topic, check_out, find_bags, image_topics
 from ad_estimator.images import ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
@@ -162,6 +162,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+@interruptible("estimate")
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     one_line_warnings()

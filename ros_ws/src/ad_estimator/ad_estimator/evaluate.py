@@ -22,7 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ad_estimator import metrics
-from ad_estimator.cli import HelpFormatter, positive, staged
+from ad_estimator.cli import HelpFormatter, interruptible, positive, staged
 from ad_estimator.images import MAX_IMAGE_PIXELS, ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC
@@ -78,7 +78,8 @@ class Evaluation:
 
 
 def find_bags(paths: list[Path]) -> list[Path]:
-    """Bag folders (or .mcap files) given directly or found below the given folders."""
+    """Bag folders (or .mcap files) given directly or found below the given folders, each once: a bag
+    named twice, or both as a folder and by one of its .mcap files, would be scored twice."""
     bags = []
     for path in paths:
         if not path.exists():
@@ -90,7 +91,17 @@ def find_bags(paths: list[Path]) -> list[Path]:
         if not found:
             raise BagError(f"no bag (.mcap files) under {path}")
         bags.extend(found)
-    return bags
+    folders = {bag.resolve() for bag in bags if bag.is_dir()}
+    unique, seen = [], set()
+    for bag in bags:
+        key = bag.resolve()
+        if key not in seen and not (bag.is_file() and key.parent in folders):
+            unique.append(bag)
+            seen.add(key)
+    if len(unique) < len(bags):
+        warnings.warn(f"{len(bags) - len(unique)} bag(s) given more than once (or by a file of a bag folder also "
+                      "given) are read once")
+    return unique
 
 
 def check_image_topic(topics: dict[str, str], topic: str, bag: Path) -> None:
@@ -289,6 +300,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+@interruptible("evaluate")
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     one_line_warnings()
