@@ -131,7 +131,8 @@ def test_clear_errors(setup, tmp_path, capsys):
     assert evaluate.main(["--model", str(model), "--bags", str(tmp_path / "nowhere")]) == 1
     assert "nowhere" in capsys.readouterr().err
     for frames, message in (("30", "--frames [30]: each K must be in 1..25"), ("20,0", "--frames [0]: each K"),
-                            ("24,x", "expected frame counts such as 24 18 or 24,18")):
+                            ("24,x", "expected frame counts such as 24 18 or 24,18"),
+                            (",", "expected frame counts such as 24 18 or 24,18, got ','")):
         with pytest.raises(SystemExit) as exit_info:
             evaluate.main(["--model", str(model), "--bags", str(bag), "--frames", frames])
         assert exit_info.value.code == 2 and message in capsys.readouterr().err

@@ -347,6 +347,23 @@ def test_corrupt_chunk_names_file_and_offset(tmp_path):
     assert len(recovered) < len(written)
 
 
+def test_a_footer_pointing_outside_the_file_is_named_and_recoverable(tmp_path):
+    """The footer's summary_start (bytes 9..17 of the footer record) overwritten: the error says where
+    it points (it gave an empty reason), and --recover reads every message from the data section."""
+    path = tmp_path / "bad_footer"
+    written = write_fabricated_bag(path, episodes=1)
+    file = path / "bad_footer_0.mcap"
+    data = bytearray(file.read_bytes())
+    footer = len(data) - 8 - 29  # magic 8, footer record: opcode 1 + length 8 + 3 x uint64/uint32
+    data[footer + 9 : footer + 17] = bytes.fromhex("ffffffffffff0000")
+    file.write_bytes(bytes(data))
+    with pytest.raises(BagError, match=rf"corrupt footer: its summary section starts at byte {0xffffffffffff}, "
+                                       rf"outside the file.s {len(data)} bytes before the footer.*--recover"):
+        list(BagReader(path))
+    with pytest.warns(UserWarning, match="corrupt footer.*reading the data section instead"):
+        assert len(list(BagReader(path, recover=True))) == len(written)
+
+
 def test_repair_makes_a_killed_writers_bag_whole_for_any_reader(tmp_path, capsys):
     """A copy of a bag whose writer never closed it (what kill -9 leaves: no summaries, metadata.yaml
     counting nothing): `repair` rewrites the flushed messages as a bag that rosbags, an independent

@@ -35,6 +35,8 @@ class FrameCounts(argparse.Action):
             counts = {int(v) for value in values for v in value.split(",") if v.strip()}
         except ValueError:
             parser.error(f"{option_string}: expected frame counts such as 24 18 or 24,18, got {' '.join(values)!r}")
+        if values and not counts:  # `--frames ,` is a typo, not the bare flag's default set
+            parser.error(f"{option_string}: expected frame counts such as 24 18 or 24,18, got {' '.join(values)!r}")
         if bad := sorted(k for k in counts if not 1 <= k <= FRAME_COUNT):
             parser.error(f"{option_string} {bad}: each K must be in 1..{FRAME_COUNT}")
         setattr(namespace, self.dest, sorted(counts, reverse=True))

@@ -767,6 +767,11 @@ class BagReader:
         footer = Footer.read(ReadDataStream(io.BytesIO(data[footer_at + 9 : size - MAGIC_SIZE])))
         if footer.summary_start == 0:
             return None
+        if not MAGIC_SIZE <= footer.summary_start < footer_at:  # a damaged footer points anywhere
+            self._problem(scan, f"{scan.path}: corrupt footer: its summary section starts at byte "
+                                f"{footer.summary_start}, outside the file's {size} bytes before the footer",
+                          "reading the data section instead")
+            return None
         chunk_indexes = []
         try:
             for record in StreamReader(io.BytesIO(data[footer.summary_start :]), skip_magic=True).records:
@@ -777,8 +782,8 @@ class BagReader:
                 elif isinstance(record, Channel):
                     scan.channels[record.id] = record
         except (McapError, struct.error, ValueError) as exc:
-            self._problem(scan, f"{scan.path}: corrupt summary section at byte {footer.summary_start}: {exc}",
-                          "reading the data section instead")
+            self._problem(scan, f"{scan.path}: corrupt summary section at byte {footer.summary_start}: "
+                                f"{exc or type(exc).__name__}", "reading the data section instead")
             return None
         return chunk_indexes
 
