@@ -59,6 +59,76 @@ def test_help_list_shapes_and_argument_errors(capsys):
     assert "Warp device 'cuda:99' is not available" in capsys.readouterr().err
 
 
+def no_simulation(monkeypatch):
+    """Makes a simulation fail the test: what is checked must be found before any."""
+    import ad_sim.episode
+
+    def simulate_batch(*args, **kwargs):
+        pytest.fail("simulated although the command was to be refused first")
+
+    monkeypatch.setattr(ad_sim.episode, "simulate_batch", simulate_batch)
+
+
+@pytest.mark.parametrize("bad, said", [
+    (["--batch", "-1"], "--batch must be >= 1, got -1"), (["--batch", "0"], "--batch must be >= 1, got 0"),
+    (["--seed", "-1"], "--seed must be >= 0, got -1"),
+    (["--max-bag-size", "-5"], "--max-bag-size must be >= 0, got -5"),
+    (["--name", "x/../../escaped"], "--name must be a plain folder name (no / or ..), got 'x/../../escaped'"),
+    (["--name", ".."], "--name must be a plain folder name"),
+    (["--limit", "2", "--shards", "3"], "--shards 3: 2 instance(s) leave shard 2 of 3 empty; use at most 2 shards"),
+    (["--limit", "2", "--shard", "2/3"], "--shard 2/3: 2 instance(s) leave shard 2 of 3 empty"),
+    (["--instances", "BINARY"], "BINARY: not UTF-8 text ("),
+], ids=["batch-negative", "batch-0", "seed", "max-bag-size", "name-escapes", "name-dotdot", "shards", "shard", "utf-8"])
+def test_numeric_name_and_shard_count_errors_name_the_option(bad, said, tmp_path, capsys):
+    """--batch -1 once wrote an empty shard marked done (0 was the default), --shards above the instances
+    an empty bag marked done, --name x/../.. wrote outside --out; --seed -1 failed in NumPy without naming
+    --seed, --max-bag-size -5 after start-up with exit 1; a non-UTF-8 instance file was not named."""
+    binary = tmp_path / "binary.json"
+    binary.write_bytes(b"\xff\xfe[]")
+    bad, said = [str(binary) if arg == "BINARY" else arg for arg in bad], said.replace("BINARY", str(binary))
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--quiet", "--size", "tiny", "--split", "unseen", "--out", str(out), *bad])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert said in err.splitlines()[-1], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["binary.json"]  # nothing written, in --out or beside it
+
+
+def test_an_out_that_cannot_be_written_is_one_line_before_any_simulation(tmp_path, monkeypatch, capsys):
+    """An --out that is a file or cannot be made, or a shard path that is a file, were tracebacks."""
+    no_simulation(monkeypatch)
+    args = ["--quiet", "--size", "tiny", "--split", "unseen", "--limit", "2", "--shards", "2"]
+    a_file = tmp_path / "a-file"
+    a_file.write_text("mine\n")
+    shard_is_file = tmp_path / "shard-is-file"
+    shard_is_file.mkdir()
+    (shard_is_file / "unseen-1of2").write_text("mine\n")  # the second shard: found before the first is simulated
+    for out, said in ((a_file, f"error: cannot write in --out {a_file}: it is a file, not a folder"),
+                      ("/proc/nope", "error: cannot write in --out /proc/nope: No such file or directory"),
+                      (shard_is_file, f"error: cannot write {shard_is_file / 'unseen-1of2'}: it is a file or a link, "
+                                      "not a shard folder; move it or choose another --out")):
+        assert main([*args, "--out", str(out)]) == 1
+        assert capsys.readouterr().err == said + "\n"
+    assert a_file.read_text() == (shard_is_file / "unseen-1of2").read_text() == "mine\n"
+    assert sorted(p.name for p in shard_is_file.iterdir()) == ["unseen-1of2"]
+
+
+def test_a_shard_folder_with_files_generate_does_not_write_is_not_deleted(tmp_path, monkeypatch, capsys):
+    """A shard folder without a DONE marker was deleted whatever it held; now only generate's own files."""
+    no_simulation(monkeypatch)
+    shard = tmp_path / "unseen-0of1"
+    shard.mkdir()
+    own = ["metadata.yaml", "metadata.yaml.tmp", "unseen-0of1_0.mcap", "unseen-0of1_1.mcap", "DONE.tmp"]
+    for name in [*own, "notes.txt", "other-0of1_0.mcap"]:
+        (shard / name).write_text("mine\n")
+    (shard / "sub").mkdir()
+    assert main(["--quiet", "--size", "tiny", "--split", "unseen", "--limit", "1", "--out", str(tmp_path)]) == 1
+    assert capsys.readouterr().err == (f"error: {shard} would be redone, but it holds files generate does not write "
+                                       "(notes.txt, other-0of1_0.mcap, sub); move them or choose another --out\n")
+    assert sorted(p.name for p in shard.iterdir()) == sorted([*own, "notes.txt", "other-0of1_0.mcap", "sub"])
+
+
 def test_ctrl_c_says_what_to_do_without_a_traceback(tmp_path):
     interrupted = generate("--size", "tiny", "--split", "unseen", "--limit", "2", "--batch", "1",
                            "--out", str(tmp_path))
@@ -150,6 +220,48 @@ def test_rerun_with_other_settings_is_refused_and_keeps_the_bag(tmp_path, capsys
     err = capsys.readouterr().err
     assert f"warning: {shard} records no settings (an older version wrote it), so it is taken as done" in err, err
     assert "already done, skipped" in err
+
+
+@pytest.mark.ros
+def test_a_damaged_done_shard_is_redone_with_a_warning(tmp_path, capsys):
+    """A DONE shard was skipped without a look at its files (a deleted or cut .mcap stayed broken), and a damaged
+    marker was a traceback; now both are redone like an unfinished shard, saying so in one line."""
+    args = ["--quiet", "--size", "tiny", "--split", "unseen", "--skip-particles", "--limit", "1", "--out", str(tmp_path)]
+    assert main(args) == 0
+    shard = tmp_path / "unseen-0of1"
+    mcap, marker = shard / "unseen-0of1_0.mcap", shard / DONE_MARKER
+    written = marker.read_text()
+    sizes = json.loads(written)["sizes"]
+    assert sizes == {"unseen-0of1_0.mcap": mcap.stat().st_size, "metadata.yaml": (shard / "metadata.yaml").stat().st_size}
+    capsys.readouterr()
+
+    def rerun():
+        assert main(args) == 0
+        lines = capsys.readouterr().err.splitlines()
+        assert marker.read_text() == written and lines[-1] == f"{shard}: written", lines  # byte-identical again
+        return lines[:-1]
+
+    mcap.unlink()
+    assert rerun() == [f"warning: {shard} is damaged (unseen-0of1_0.mcap is missing), so it is redone"]
+    with open(mcap, "r+b") as f:
+        f.truncate(100)
+    assert rerun() == [f"warning: {shard} is damaged (unseen-0of1_0.mcap has 100 bytes, not the "
+                       f"{sizes['unseen-0of1_0.mcap']} it was written with), so it is redone"]
+    for damaged in ("", "[1, 2]", '{"settings": [1]}', written[: len(written) // 2]):
+        marker.write_text(damaged)
+        assert rerun() == [f"warning: {marker} is not a marker generate writes (damaged or edited), so {shard} is "
+                           "taken as unfinished and redone"], damaged
+    # A marker from before sizes were recorded: checked once by its sha256s, then given the sizes.
+    marker.write_text(json.dumps({k: v for k, v in json.loads(written).items() if k != "sizes"}))
+    assert main(args) == 0 and capsys.readouterr().err == f"{shard}: already done, skipped\n"
+    assert json.loads(marker.read_text())["sizes"] == sizes
+    marker.write_text(json.dumps({k: v for k, v in json.loads(written).items() if k != "sizes"}))
+    data = bytearray(mcap.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # the same size, other bytes
+    mcap.write_bytes(bytes(data))
+    assert rerun() == [f"warning: {shard} is damaged (unseen-0of1_0.mcap is not the file it was written as "
+                       "(sha256)), so it is redone"]
+    assert main(args) == 0 and capsys.readouterr().err == f"{shard}: already done, skipped\n"
 
 
 def shard_masks(shard):

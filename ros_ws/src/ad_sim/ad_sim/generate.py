@@ -3,7 +3,8 @@
 Same content as recording the simulator node's topics (ad_sim.messages is shared), without
 DDS. Output is sharded: shard i of N holds instances i, i+N, i+2N, ... of the list in
 OUT/<name>-<i>of<N>/ (name: the split, the instance file's stem or --name), a bag folder. A finished shard has a DONE marker and is skipped when the
-command is run again with the same settings (refused with other ones); a shard without it (a killed run) is deleted and redone.
+command is run again with the same settings (refused with other ones) and its files are intact; a shard without it (a killed
+run), with a damaged marker or with files missing or cut short is deleted and redone, if it holds only what generate writes.
 Deterministic: the same arguments give byte-identical bags.
 """
 
@@ -12,15 +13,17 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import re
 import shutil
 import sys
 from pathlib import Path
 
 # ad_sim.messages (and through it Warp and SciPy, a second of imports) is imported where it is used, so
 # that a Ctrl-C right after start lands in main's handler (one line, exit 130) instead of a traceback.
-from .rosbag import BagError, BagWriter, qos_profile
+from .rosbag import METADATA_FILE, BagError, BagWriter, qos_profile
 
 DONE_MARKER = "DONE"
+DONE_PARTIAL = "DONE.tmp"  # the marker while it is written (renamed to DONE_MARKER)
 DEFAULT_BATCH = {"cpu": 8, "cuda": 256}
 
 
@@ -35,6 +38,11 @@ def parse_shard(text: str) -> tuple[int, int]:
     return index, count
 
 
+def plain_name(text: str) -> bool:
+    """Whether `text` names an entry of a folder (no path separator, not . or ..)."""
+    return text not in ("", ".", "..") and Path(text).name == text
+
+
 def shard_dir(out: Path, name: str, index: int, count: int) -> Path:
     return out / f"{name}-{index}of{count}"
 
@@ -45,6 +53,33 @@ def is_done(folder: Path) -> bool:
 
 class ShardMismatch(ValueError):
     """A finished shard was written with other settings than those asked for now."""
+
+
+class ForeignFiles(ValueError):
+    """A shard path to be (re)written holds something generate did not write there, so it is not deleted."""
+
+
+def _own_file(folder: Path, path: Path) -> bool:
+    """Whether `path` in shard `folder` is one generate writes: BagWriter's metadata.yaml (and the .tmp it
+    renames), its <folder>_<i>.mcap files, and the DONE marker (and its .tmp)."""
+    own = path.name in (METADATA_FILE, f"{METADATA_FILE}.tmp", DONE_MARKER, DONE_PARTIAL) \
+        or re.fullmatch(re.escape(folder.name) + r"_\d+\.mcap", path.name) is not None
+    return own and (path.is_symlink() or not path.is_dir())
+
+
+def check_replaceable(folder: Path) -> None:
+    """Raises ForeignFiles unless `folder` is absent or looks like a shard generate wrote (then deleting it
+    loses nothing: the same command writes it again, byte for byte)."""
+    if not folder.exists() and not folder.is_symlink():
+        return
+    if folder.is_symlink() or not folder.is_dir():
+        raise ForeignFiles(f"cannot write {folder}: it is a file or a link, not a shard folder; move it or choose "
+                           "another --out")
+    unexpected = sorted(p.name for p in folder.iterdir() if not _own_file(folder, p))
+    if unexpected:
+        listed = ", ".join(unexpected[:5]) + (f" and {len(unexpected) - 5} more" if len(unexpected) > 5 else "")
+        raise ForeignFiles(f"{folder} would be redone, but it holds files generate does not write ({listed}); "
+                           "move them or choose another --out")
 
 
 def shard_settings(instances: list, views: int | None, skip: frozenset[str], compression: str, max_bag_size: int,
@@ -60,8 +95,64 @@ def shard_settings(instances: list, views: int | None, skip: frozenset[str], com
     return settings | ({"masks": "coverage"} if coverage_masks else {})
 
 
-def _check_settings(folder: Path, settings: dict) -> None:
-    recorded = json.loads((folder / DONE_MARKER).read_text()).get("settings")
+def _read_marker(folder: Path) -> dict | None:
+    """The DONE marker of `folder`, or None (after a one-line warning) if it is not one generate writes (empty,
+    cut short, edited): like a shard without a marker, it is then redone."""
+    marker = folder / DONE_MARKER
+    try:
+        done = json.loads(marker.read_text())
+    except ValueError:  # not JSON, or not UTF-8
+        done = None
+    files, sizes = (done.get("sha256"), done.get("sizes")) if isinstance(done, dict) else (None, None)
+    if not (isinstance(done, dict) and isinstance(done.get("settings") or {}, dict) and isinstance(files, dict) and files
+            and all(plain_name(name) and isinstance(digest, str) for name, digest in files.items())
+            and (sizes is None or (isinstance(sizes, dict) and sizes
+                                   and all(plain_name(name) and type(n) is int for name, n in sizes.items())))):
+        print(f"warning: {marker} is not a marker generate writes (damaged or edited), so {folder} is taken as "
+              "unfinished and redone", file=sys.stderr)
+        return None
+    return done
+
+
+def _file_sizes(folder: Path) -> dict[str, int]:
+    return {p.name: p.stat().st_size for p in sorted(folder.glob("*.mcap"))} | {
+        METADATA_FILE: (folder / METADATA_FILE).stat().st_size}
+
+
+def _damage(folder: Path, done: dict) -> str:
+    """What is wrong with the files of finished shard `folder` ("" if nothing), against its marker `done`.
+
+    By their sizes, not their sha256: re-reading a shard (gigabytes) on every re-run would take minutes, and what
+    breaks finished files in practice (a deleted file, a copy or a full disk that stopped part way) changes their
+    size; the marker keeps the sha256s for a full check (sha256sum). A marker from before sizes were recorded is
+    checked once by its sha256s, and then given the sizes."""
+    sizes = done.get("sizes")
+    for name in sizes or [*done["sha256"], METADATA_FILE]:
+        if not (folder / name).is_file():
+            return f"{name} is missing"
+    if sizes is not None:
+        for name, size in sizes.items():
+            if (actual := (folder / name).stat().st_size) != size:
+                return f"{name} has {actual} bytes, not the {size} it was written with"
+        return ""
+    for name, digest in done["sha256"].items():
+        with open(folder / name, "rb") as f:  # streamed: a shard's file can be larger than memory
+            if hashlib.file_digest(f, "sha256").hexdigest() != digest:
+                return f"{name} is not the file it was written as (sha256)"
+    try:
+        _write_marker(folder, done | {"sizes": _file_sizes(folder)})
+    except OSError:  # a read-only copy: checked by sha256 again next time
+        pass
+    return ""
+
+
+def _write_marker(folder: Path, done: dict) -> None:
+    partial = folder / DONE_PARTIAL
+    partial.write_text(json.dumps(done, indent=2) + "\n")
+    partial.replace(folder / DONE_MARKER)  # atomic: a kill never leaves a half-written marker
+
+
+def _check_settings(folder: Path, recorded: dict | None, settings: dict) -> None:
     if recorded is None:  # written before markers recorded their settings: they cannot be compared
         print(f"warning: {folder} records no settings (an older version wrote it), so it is taken as done whatever "
               "was asked for now; delete it to write it with these settings", file=sys.stderr)
@@ -110,18 +201,27 @@ def generate_shard(
     coverage_masks: bool = False,
 ) -> bool:
     """Simulate `instances` and write them as one bag folder; False if it was already done with the
-    same settings. Raises ShardMismatch if it was done with others. coverage_masks: mask pixels hold
-    their area coverage (0..255) instead of 0/255 (episode.simulate_batch)."""
+    same settings. Raises ShardMismatch if it was done with others, ForeignFiles if it is to be (re)done but
+    holds files generate does not write. coverage_masks: mask pixels hold their area coverage (0..255)
+    instead of 0/255 (episode.simulate_batch)."""
     from tqdm import tqdm
 
     from .episode import simulate_batch
 
     settings = shard_settings(instances, views, skip, compression, max_bag_size, coverage_masks)
-    if is_done(folder):
-        _check_settings(folder, settings)
-        return False
+    if is_done(folder) and (done := _read_marker(folder)) is not None:
+        if done.get("settings") is not None:  # other settings: refused even if damaged (redoing would change them)
+            _check_settings(folder, done["settings"], settings)
+        if damage := _damage(folder, done):
+            check_replaceable(folder)  # before saying it is redone
+            print(f"warning: {folder} is damaged ({damage}), so it is redone", file=sys.stderr)
+        else:
+            if done.get("settings") is None:
+                _check_settings(folder, None, settings)
+            return False
+    check_replaceable(folder)  # deletes only a shard of generate's own (a killed run's, or damaged)
     if folder.exists():
-        shutil.rmtree(folder)  # a partial shard of a killed run
+        shutil.rmtree(folder)
     batch = batch or DEFAULT_BATCH["cuda" if device.startswith("cuda") else "cpu"]
     writer = BagWriter(folder, max_bag_size=max_bag_size, compression=compression, custom_data=custom_data)
     with tqdm(total=len(instances), desc=folder.name, unit="episode", disable=not progress) as bar:
@@ -132,10 +232,8 @@ def generate_shard(
             bar.update(len(episodes))
     writer.close()
     done = {"episodes": len(instances), "messages": writer.message_count, "sha256": _file_digests(folder),
-            "settings": settings}
-    marker = folder / DONE_MARKER
-    marker.with_suffix(".tmp").write_text(json.dumps(done, indent=2) + "\n")
-    marker.with_suffix(".tmp").replace(marker)  # atomic: a kill never leaves a half-written marker
+            "sizes": _file_sizes(folder), "settings": settings}
+    _write_marker(folder, done)
     return True
 
 
@@ -191,6 +289,13 @@ def main(argv: list[str] | None = None) -> int:
 def _generate(argv: list[str] | None, writing: list[Path]) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    # Checked here, naming the option, before Warp starts: a negative --batch once wrote an empty shard marked
+    # done (and 0 meant the default), a negative --seed failed in NumPy without naming it.
+    for option, value, least in (("--batch", args.batch, 1), ("--seed", args.seed, 0), ("--max-bag-size", args.max_bag_size, 0)):
+        if value is not None and value < least:
+            parser.error(f"{option} must be >= {least}, got {value}")
+    if args.name is not None and not plain_name(args.name):  # it could write (and delete) outside --out
+        parser.error(f"--name must be a plain folder name (no / or ..), got {args.name!r}")
     if args.list_shapes:
         from .shapes import shape_records
 
@@ -222,9 +327,29 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
     if args.shards < 1:
         parser.error("--shards must be >= 1")
     index_range, count = ((args.shard[0],), args.shard[1]) if args.shard else (range(args.shards), args.shards)
+    if index_range[-1] >= len(instances):  # refused: an empty bag marked done is of no use, and likely a mistake
+        asked = f"--shard {args.shard[0]}/{count}" if args.shard else f"--shards {count}"
+        parser.error(f"{asked}: {len(instances)} instance(s) leave shard {index_range[-1]} of {count} empty; "
+                     f"use at most {len(instances)} shards")
     source = {"instances": str(args.instances)} if args.instances else {"size": args.size, "split": args.split, "seed": str(args.seed)}
     from . import messages
 
+    # What would stop a shard being written is found before any simulation: --out not a folder or not
+    # writable, a shard path that is a file or holds files generate did not write.
+    if args.out.exists() and not args.out.is_dir():
+        print(f"error: cannot write in --out {args.out}: it is a file, not a folder", file=sys.stderr)
+        return 1
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+        for index in index_range:
+            if not is_done(shard_dir(args.out, name, index, count)):
+                check_replaceable(shard_dir(args.out, name, index, count))
+    except ForeignFiles as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"error: cannot write in --out {args.out}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
     for index in index_range:
         folder = shard_dir(args.out, name, index, count)
         custom = {"generator": "ad_sim.generate", "shard": f"{index}/{count}", **source,
@@ -244,8 +369,11 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
                 progress=not args.quiet,
                 coverage_masks=args.coverage_masks,
             )
-        except (BagError, ShardMismatch) as exc:
+        except (BagError, ShardMismatch, ForeignFiles) as exc:
             print(f"error: {exc}", file=sys.stderr)
+            return 1
+        except OSError as exc:  # a full disk, a folder made read-only: one line (the shard has no marker: a re-run redoes it)
+            print(f"error: cannot write {folder}: {exc.strerror or exc}", file=sys.stderr)
             return 1
         writing.clear()
         print(f"{folder}: {'written' if wrote else 'already done, skipped'}", file=sys.stderr)

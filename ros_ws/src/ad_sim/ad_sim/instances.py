@@ -344,7 +344,10 @@ def load_instance_file(path: str | Path) -> list[Instance]:
     Raises ValueError naming the entry and field of the first problem found.
     """
     path = Path(path)
-    text = path.read_text()
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError as error:  # its own message does not name the file
+        raise ValueError(f"{path}: not UTF-8 text ({error})") from None
     if path.suffix.lower() == ".json":
         try:
             entries = json.loads(text)
