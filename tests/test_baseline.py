@@ -86,3 +86,24 @@ def test_registered_as_a_training_subcommand_with_help(capsys):
         main(["baseline", "--help"])
     assert exit_info.value.code == 0
     assert "--generations" in capsys.readouterr().out
+
+
+def test_an_out_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """An --out that is a folder, or in a folder that cannot be made or written, is one line before the
+    simulations and the CMA-ES, instead of an IsADirectory/permission error after them."""
+    from training.__main__ import main
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the work started before --out was checked")
+
+    for name in ("observed_from_bags", "resimulate", "fit_instances"):
+        monkeypatch.setattr(baseline, name, no_work)
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "afile").write_text("")
+    for source in (["--bags", str(SAMPLE_BAG)], ["--size", "tiny"]):  # observed videos read or simulated
+        for out, expected in ((tmp_path / "folder", f"--out {tmp_path / 'folder'} is a folder; pass a .json file"),
+                              (tmp_path / "afile" / "b.json", f"{tmp_path / 'afile'} is not a folder")):
+            assert main(["baseline", *source, "--instances", "1", "--out", str(out), "--no-progress"]) == 1
+            line = capsys.readouterr().err.splitlines()[-1]
+            assert line.startswith("python -m training baseline: ") and expected in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "folder"] and not any((tmp_path / "folder").iterdir())

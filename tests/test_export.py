@@ -198,3 +198,77 @@ def test_only_a_coverage_student_records_mask_levels(tmp_path):
     engine.save_checkpoint(tmp_path / "bad.pt", state)
     with pytest.raises(ValueError, match="mask_levels is one of binary, coverage, got 'grey'"):
         export_student(tmp_path / "bad.pt", tmp_path / "x" / "student.onnx")
+
+
+def _files(folder) -> dict:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_an_export_that_fails_verification_replaces_nothing(tmp_path, capsys, monkeypatch):
+    """The files are written and verified in a staging folder and moved into place only when they all
+    verify: a failure (onnxruntime's own error, or export's RuntimeError when it differs from torch) is one
+    line, exit 1, and leaves the previous export (encoder, head and metrics) as it was, with no leftovers.
+    Written in place, they had replaced the previous files before the check (a traceback)."""
+    from training import export
+    from training.__main__ import main
+
+    monkeypatch.delenv("AD_DEBUG", raising=False)
+    good, _ = _checkpoint(tmp_path, "streaming")
+    folder = tmp_path / "models"
+    out = folder / "student.onnx"
+    assert main(["export", "--checkpoint", str(good), "--out", str(out)]) == 0
+    before = _files(folder)
+    assert list(before) == ["student.frame.onnx", "student.metrics.json", "student.onnx"]
+    capsys.readouterr()
+    # onnxruntime cannot load the head it wrote (its own error, InvalidProtobuf; a head it cannot run, as
+    # one of embed_dim 0 was, gave InvalidArgument).
+    attach = export._attach
+
+    def broken_head(path, meta):
+        attach(path, meta)
+        if path.name == out.name:
+            path.write_bytes(b"not onnx")
+
+    monkeypatch.setattr(export, "_attach", broken_head)
+    assert main(["export", "--checkpoint", str(good), "--out", str(out), "--model-id", "other"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.splitlines()[-1].startswith(
+        f"python -m training export: the ONNX export of {good} does not verify in onnxruntime (")
+    assert "INVALID_PROTOBUF" in err.splitlines()[-1]
+    assert _files(folder) == before
+    monkeypatch.setattr(export, "_attach", attach)
+    # It runs but differs from torch (here: any difference at all is too much).
+    verify = export.verify_export
+    monkeypatch.setattr(export, "verify_export", lambda *args: verify(*args, atol=-1.0))
+    assert main(["export", "--checkpoint", str(good), "--out", str(out), "--model-id", "other"]) == 1
+    line = capsys.readouterr().err.splitlines()[-1]
+    assert "differs from torch" in line and f"nothing was written to {folder}" in line
+    assert _files(folder) == before
+    # Interrupted (Ctrl-C, or a kill) before the files are moved into place: the previous export stays whole.
+    def interrupted(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export, "verify_export", interrupted)
+    assert main(["export", "--checkpoint", str(good), "--out", str(out), "--model-id", "other"]) == 130
+    assert _files(folder) == before
+
+
+def test_an_out_that_would_overwrite_the_checkpoint_is_refused(tmp_path, capsys):
+    """--out (or the frame encoder or metrics JSON written beside it) naming the checkpoint is refused before
+    anything is written; once, the checkpoint was overwritten with ONNX and export then failed on it."""
+    from training.__main__ import main
+
+    ckpt, _ = _checkpoint(tmp_path, "streaming")
+    weights = ckpt.read_bytes()
+    (tmp_path / "sub").mkdir()
+    cases = [(ckpt, ckpt), (ckpt, tmp_path / "sub" / ".." / ckpt.name),
+             (tmp_path / "s.frame.onnx", tmp_path / "s.onnx"), (tmp_path / "s.metrics.json", tmp_path / "s.onnx")]
+    for checkpoint, out in cases:
+        if checkpoint != ckpt:
+            checkpoint.write_bytes(weights)
+        listing = sorted(p.name for p in tmp_path.iterdir())
+        assert main(["export", "--checkpoint", str(checkpoint), "--out", str(out)]) == 1, out
+        (line,) = capsys.readouterr().err.splitlines()
+        assert line.startswith(f"python -m training export: --out {out} would write ") and "is the checkpoint" in line
+        assert checkpoint.read_bytes() == weights and sorted(p.name for p in tmp_path.iterdir()) == listing
+        assert not any((tmp_path / "sub").iterdir())

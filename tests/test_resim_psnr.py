@@ -114,3 +114,29 @@ def test_a_device_this_machine_lacks_is_refused_before_any_work(tmp_path, capsys
         assert main([*command, "--device", "cuda:99"]) == 1
         (line,) = capsys.readouterr().err.splitlines()
         assert line.startswith(f"python -m training {command[0]}: Warp device 'cuda:99' is not available")
+
+
+def test_an_out_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """An --out that is a folder, or in a folder that cannot be made or written, is one line before the
+    re-simulation, instead of an IsADirectory/permission error after it."""
+    from training.__main__ import main
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the re-simulation started before --out was checked")
+
+    monkeypatch.setattr(resim_psnr, "model_psnr", no_work)
+    model = build_clip_model(tmp_path / "student.onnx", seed=3)
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "afile").write_text("")
+    command = ["resim-psnr", "--model", str(model), "--bags", str(SAMPLE_BAG), "--no-progress"]
+    for out, expected in ((tmp_path / "folder", f"--out {tmp_path / 'folder'} is a folder; pass a .json file name"),
+                          (tmp_path / "afile" / "r.json", f"{tmp_path / 'afile'} is not a folder")):
+        assert main([*command, "--out", str(out)]) == 1
+        line = capsys.readouterr().err.splitlines()[-1]
+        assert line.startswith("python -m training resim-psnr: ") and expected in line, line
+    # The default --out's folder too (runs/resim_psnr under the working folder).
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "runs").write_text("")
+    assert main(command) == 1
+    assert "runs is not a folder" in capsys.readouterr().err.splitlines()[-1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "folder", "runs", "student.onnx"]

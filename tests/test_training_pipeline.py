@@ -63,12 +63,17 @@ def test_ctrl_c_while_the_pipeline_generates_bags_is_an_interrupt_not_a_failure(
     assert "interrupted" in capsys.readouterr().err
 
 
-def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
+def _pipeline_bags(tmp_path) -> Path:
     data = tmp_path / "bags"
     for i, split in enumerate(("train", "seen", "unseen")):
         bag = write_synthetic_bag(data / "tiny" / split / f"{split}-0of1", 9 if split == "train" else 6,
                                   views=2 if split == "train" else 1, seed=10 + i, split=split)
         (bag / "DONE").write_text("{}\n")  # what ad_sim.generate leaves in a finished shard
+    return data
+
+
+def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
+    data = _pipeline_bags(tmp_path)
     args = ["pipeline", "--size", "tiny", "--data", str(data), "--out", str(tmp_path / "run"), "--cache",
             str(tmp_path / "cache"), "--teacher-epochs", "1", "--student-epochs", "1", "--ablations", "full",
             "--install", str(tmp_path / "installed"), "--device", "cpu", "--no-progress"]
@@ -120,6 +125,18 @@ def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
     assert not (tmp_path / "again").exists()
     assert main([*evaluate_again, "--no-record"]) == 0
     assert record.read_text() == "{" and (tmp_path / "again" / "report.md").is_file()
+
+
+def test_pipeline_installs_the_last_student_trained_when_there_is_no_full_one(tmp_path, capsys):
+    """--install's help: the `full` student, or else the last trained; it had installed the first."""
+    data = _pipeline_bags(tmp_path)
+    assert main(["pipeline", "--size", "tiny", "--data", str(data), "--out", str(tmp_path / "run"), "--cache",
+                 str(tmp_path / "cache"), "--teacher-epochs", "1", "--student-epochs", "1", "--ablations",
+                 "none,align_only", "--install", str(tmp_path / "installed"), "--device", "cpu", "--no-progress"]) == 0
+    metrics = json.loads((tmp_path / "installed" / "default.metrics.json").read_text())
+    assert metrics["training"]["ablation"] == "align_only"
+    installed = EstimatorModel.load(tmp_path / "installed" / "default.onnx").model_id
+    assert installed == EstimatorModel.load(tmp_path / "run" / "models" / "streaming_align_only.onnx").model_id
 
 
 def test_evaluate_rejects_bad_prefix_lengths(capsys):

@@ -31,7 +31,7 @@ from ad_sim.instances import Instance, benchmark
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, PARAMETER_NAMES, SAMPLED_PARAMETERS
 from ad_sim.mpm import check_device
 from ad_sim.resimulate import mask_mse, psnr_from_mse, resimulate
-from training.resim_psnr import FIT_VIEW, format_psnr, observed_from_bags, psnr_summary, select
+from training.resim_psnr import FIT_VIEW, check_json_out, format_psnr, observed_from_bags, psnr_summary, select
 
 log = logging.getLogger(__name__)
 
@@ -209,16 +209,17 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 def run(args) -> dict:
     check_device(args.device)
     progress = not args.no_progress
+    name = Path(args.bags).name if args.bags else f"{args.size}-{args.split}"
+    out = Path(args.out or f"runs/baseline/{name}.json")
+    check_json_out(out)  # before the simulations and the CMA-ES, not when writing their result
     if args.bags:
         instances, observed = observed_from_bags(args.bags, args.instances, args.seed)
-        name = Path(args.bags).name
     else:
         every = benchmark(args.size, args.split)
         instances = [every[i] for i in select(args.instances, len(every), args.seed)]
         log.info("simulating the observed videos of %d instances", len(instances))
         observed = resimulate(instances, [(i.material, i.parameters) for i in instances], args.device, FIT_VIEW,
                               progress=progress)
-        name = f"{args.size}-{args.split}"
     start = time.perf_counter()
     fits = fit_instances(instances, observed, args.device, args.generations, args.popsize, args.sigma0, args.seed,
                          args.parallel, progress)
@@ -227,7 +228,6 @@ def run(args) -> dict:
     result["fits"] = [{**asdict(fit), "psnr": fit.psnr,
                        "true_parameters": {n: inst.parameters[n] for n in SAMPLED_PARAMETERS[inst.material]}}
                       for inst, fit in zip(instances, fits)]
-    out = Path(args.out or f"runs/baseline/{name}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json_text(result))  # strict JSON: NaN (no instance of a family) becomes null
     print(format_table({str(observed.shape[1]): result["metrics"]}, f"per-scene CMA-ES baseline on {name}"))

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -94,12 +97,61 @@ def frame_encoder_path(onnx_path: Path) -> Path:
     return onnx_path.with_name(onnx_path.stem + ".frame.onnx")
 
 
+def _check_out(checkpoint: str | Path, out: Path) -> None:
+    """Refuses, before anything is written, an `out` that is a folder or whose files would overwrite the
+    checkpoint (the ONNX, its frame encoder or its metrics JSON written over the only copy of the weights)."""
+    if out.is_dir():  # before anything is written: a streaming student's frame encoder would land beside it
+        raise ValueError(f"--out {out} is a folder; give the model's file name, e.g. {out / 'student.onnx'}")
+    source = Path(checkpoint).resolve()
+    for path in (out, frame_encoder_path(out), metrics_path(out)):
+        if path.resolve() == source:
+            raise ValueError(f"--out {out} would write {path}, which is the checkpoint {checkpoint}; give the "
+                             f"model's own file name, e.g. {out.with_name('student.onnx')}")
+
+
 def export_student(checkpoint: str | Path, out: str | Path, model_id: str | None = None) -> list[Path]:
     """Writes the ONNX file(s) for a student checkpoint; `out` is <name>.onnx. Returns the paths."""
     out = Path(out)
-    if out.is_dir():  # before anything is written: a streaming student's frame encoder would land beside it
-        raise ValueError(f"--out {out} is a folder; give the model's file name, e.g. {out / 'student.onnx'}")
+    _check_out(checkpoint, out)
     model, meta = load_student(checkpoint)
+    return _write(model, meta, checkpoint, out, model_id)
+
+
+def export_verified(checkpoint: str | Path, out: str | Path, model_id: str | None = None,
+                    seed: int = 0) -> tuple[list[Path], float]:
+    """export_student, then verify_export, in a staging folder in out's folder; the files (ONNX and metrics
+    JSON) replace those at `out` only once they all verify. Returns the paths and the verification error.
+
+    Why: written in place, a failed verification or a kill half way left a new frame encoder beside an old
+    head (which `evaluate` scores without a word) or broken files over a good export."""
+    out = Path(out)
+    _check_out(checkpoint, out)
+    model, meta = load_student(checkpoint)  # a bad checkpoint fails before any folder is made
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # In out's own folder (not beside it, as ad_estimator.cli.staged does): os.replace stays on one file
+    # system and needs no write access above it. The files keep their final names there, so the head's
+    # ad.frame_encoder finds its encoder when verified.
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        written = _write(model, meta, checkpoint, staging / out.name, model_id)
+        try:
+            error = verify_export(checkpoint, staging / out.name, seed)
+        except Exception as exc:  # onnxruntime's errors (InvalidArgument, Fail, ...) share no base beyond Exception
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise ValueError(f"the ONNX export of {checkpoint} does not verify in onnxruntime ({first}); nothing "
+                             f"was written to {out.parent}") from exc
+        # The old head goes first and the new one comes last: a kill between these renames leaves no head
+        # (evaluate and the estimator say so) rather than an old head beside a new frame encoder.
+        out.unlink(missing_ok=True)
+        for path in (*written[:-1], metrics_path(written[-1]), written[-1]):
+            os.replace(path, out.parent / path.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return [out.parent / path.name for path in written], error
+
+
+def _write(model: nn.Module, meta: dict, checkpoint: str | Path, out: Path, model_id: str | None) -> list[Path]:
+    """export_student's files for a loaded student: the ONNX file(s) and a fresh metrics JSON at `out`."""
     model = model.float().eval()
     config = model.config
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -158,6 +210,7 @@ def verify_export(checkpoint: str | Path, onnx_path: str | Path, seed: int = 0, 
         ref = model(torch.from_numpy(masks), torch.from_numpy(valid))
     onnx_path = Path(onnx_path)
     opts = ort.SessionOptions()
+    opts.log_severity_level = 4  # fatal only: a failing run raises with the message its error log line repeats
     session = ort.InferenceSession(str(onnx_path), opts)
     if "embeddings" in {i.name for i in session.get_inputs()}:  # streaming: frame encoder + temporal head
         frame = ort.InferenceSession(str(frame_encoder_path(onnx_path)), opts)
@@ -184,7 +237,6 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 
 
 def run(args) -> list[Path]:
-    paths = export_student(args.checkpoint, args.out, args.model_id)
-    err = verify_export(args.checkpoint, args.out, args.seed)
+    paths, err = export_verified(args.checkpoint, args.out, args.model_id, args.seed)
     print(f"exported {', '.join(map(str, paths))}; onnxruntime vs torch max error {err:.2e}")
     return paths

@@ -70,8 +70,8 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", type=torch_device_or_auto, default="auto", help="auto | cpu | cuda | cuda:<index>")
     p.add_argument("--threads", type=count, default=0, help="torch CPU threads (0: default)")
-    p.add_argument("--install", help="copy the `full` student (or the last trained) here as <dir>/default.onnx "
-                                     "(+ default.frame.onnx, default.metrics.json)")
+    p.add_argument("--install", help="copy the `full` student (without one in --ablations, the last trained) here "
+                                     "as <dir>/default.onnx (+ default.frame.onnx, default.metrics.json)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -112,8 +112,7 @@ def run(args) -> dict:
             batch_size=student_batch, teacher=str(teacher), kind=args.kind, ablation=ablation))
         timings[f"{name}_s"] = time.time() - t
         onnx_path = out / "models" / f"{name}.onnx"
-        paths = export.export_student(best, onnx_path)
-        error = export.verify_export(best, onnx_path)
+        paths, error = export.export_verified(best, onnx_path)  # replaces the previous export only once verified
         results = {}
         for split in ("seen", "unseen"):
             res = evaluate.evaluate_model(onnx_path, bags[split], args.cache, out / "reports" / f"{name}_{split}",
@@ -126,7 +125,7 @@ def run(args) -> dict:
             "onnx": [str(p) for p in paths], "metrics": str(metrics_path),
             **{f"{split}_{key}": results[split]["full"][key] for split in ("seen", "unseen")
                for key in ("accuracy", "regl1")}}
-        if installed is None or ablation == "full":
+        if ablation == "full" or "full" not in ablations:  # --install's help: the full student, else the last
             installed = (onnx_path, metrics_path)
     timings["total_s"] = time.time() - started
     summary["timings"] = timings

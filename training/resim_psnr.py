@@ -130,6 +130,16 @@ def model_psnr(model_path: str | Path, bags: str | Path, device: str = "cpu", co
     }
 
 
+def check_json_out(out: Path) -> None:
+    """--out can be written as a JSON file, checked before any work (creating nothing): an --out that is a
+    folder or cannot be written otherwise fails only after the whole re-simulation or CMA-ES."""
+    from ad_estimator.evaluate import check_out
+
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a folder; pass a .json file name, e.g. {out / 'result.json'}")
+    check_out(out, file="a .json file")
+
+
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     p = p or argparse.ArgumentParser(prog="python -m training resim-psnr")
     p.description = ("Re-simulation PSNR (SPEC 8) of an exported student: its estimate (family + parameters) of each "
@@ -149,6 +159,9 @@ def run(args) -> dict:
     from ad_estimator.metrics import format_table
 
     check_device(args.device)
+    # Before the work, not when writing its result; without --out, the default's folder (its file name
+    # holds the model's id, known once the model loads).
+    check_json_out(Path(args.out or f"runs/resim_psnr/<model id>-{Path(args.bags).name}.json"))
     result = model_psnr(args.model, args.bags, args.device, args.instances, args.seed, not args.no_progress)
     out = Path(args.out or f"runs/resim_psnr/{result['model_id']}-{Path(args.bags).name}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
