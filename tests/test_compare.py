@@ -123,6 +123,35 @@ def test_a_bad_group_or_file_is_one_line_naming_it_and_exit_status_1(tmp_path, c
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("edit, expected", [
+    (lambda m: m["frames"]["25"].update(regl1=[1]), '"frames"["25"]["regl1"] is a list, not a number'),
+    (lambda m: m["frames"]["25"].update(regl1="abc"), '"frames"["25"]["regl1"] is "abc", not a number'),
+    (lambda m: m["frames"]["25"].update(regl1=True), '"frames"["25"]["regl1"] is true, not a number'),
+    (lambda m: m["frames"]["25"]["families"]["sand"].update(acc="0.5"),
+     '"frames"["25"]["families"]["sand"]["acc"] is "0.5", not a number'),
+    (lambda m: m["frames"].update({"25": []}), '"frames"["25"] is a list, not an object'),
+    (lambda m: m["frames"]["25"]["families"].update(jelly=None),
+     '"frames"["25"]["families"]["jelly"] is null, not an object'),
+    (lambda m: m["frames"]["25"]["families"]["sand"].update(correct="x"),
+     '"frames"["25"]["families"]["sand"]["correct"] is "x", not an object'),
+    (lambda m: m["frames"]["25"]["families"].pop("sand"),
+     'its 25-frame metrics lack "frames"["25"]["families"]["sand"]'),
+])
+def test_a_metric_that_is_not_a_number_is_named_by_file_and_field(tmp_path, capsys, edit, expected):
+    """A metrics value of the wrong JSON type was a TypeError traceback, or a message naming neither file nor
+    field ("could not convert string to float", "lack list indices must be integers ...")."""
+    bad = _metrics(tmp_path / "bad.json", 0.15)
+    metrics = json.loads(bad.read_text())
+    edit(metrics)
+    bad.write_text(json.dumps(metrics))
+    assert main(["compare", "--group", f"A={_metrics(tmp_path / 'a.json', 0.15)}", "--group", f"B={bad}",
+                 "--out", str(tmp_path / "out")]) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line == (f"python -m training compare: {bad}: {expected}; pass a metrics.json written by python -m "
+                    "training evaluate, or its report folder")
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_repeated_group_name_is_refused(tmp_path, capsys):
     run = str(_metrics(tmp_path / "a.json", 0.15))
     assert main(["compare", "--group", f"A={run}", "--group", f" A ={run}", "--out", str(tmp_path / "out")]) == 1

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -536,3 +537,167 @@ def test_checkpoint_errors_are_one_clear_line(bags, teacher_ckpt, tmp_path, caps
     assert main(["evaluate-teacher", "--teacher", str(teacher_ckpt), "--bags", str(bags), "--out", str(tmp_path / "r"),
                  "--device", "cpu", "--batch-size", "0"]) == 1
     assert "--batch-size must be at least 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind, bad, message", [
+    ("streaming", "pool=0", "--set 'pool=0': pool must be a whole number >= 1, got 0"),
+    ("streaming", "previous_frames=-1", "--set 'previous_frames=-1': previous_frames must be a whole number >= 0"),
+    ("streaming", "input_size=32", "--set 'input_size=32': input_size must be two whole numbers >= 1"),
+    ("streaming", "embed_dim=0", "--set 'embed_dim=0': embed_dim must be a whole number >= 1"),
+    ("streaming", "channels=8,0", "--set 'channels=8,0': channels must be one or more whole numbers >= 1"),
+    ("streaming", "dropout=1.5", "--set 'dropout=1.5': dropout must be a number in [0, 1)"),
+    ("streaming", "temporal_heads=3", "--set 'temporal_heads=3': temporal_width 32 is not divisible by "
+                                      "temporal_heads 3"),
+    ("uniformer", "dims=8", "--set 'dims=8': dims (8,) and depths (1, 1) must have one entry per stage each"),
+    ("uniformer", "input_size=4,4", "input size (4, 4) is too small for 2 stages"),
+])
+def test_set_values_are_checked_before_anything_is_written(bags, tmp_path, kind, bad, message):
+    """Values --set reads as the right type but cannot build a model (or built one that cannot be exported,
+    embed_dim=0) are one line naming the field, before the data loads or --out is made (were a
+    ZeroDivisionError, a torch error after the data loaded, an unpacking error)."""
+    with pytest.raises(SystemExit, match="^" + re.escape(f"python -m training student: {message}")):
+        run_student(_args(bags, tmp_path / "bad", tmp_path / "cache", epochs=1, kind=kind, ablation="none",
+                          alpha=0.5, full_clips=False, set=[bad]))
+    assert not (tmp_path / "bad").exists() and not (tmp_path / "cache").exists()
+
+
+def test_student_usage_errors_carry_the_commands_prefix(bags, tmp_path, capsys):
+    from training.__main__ import main
+
+    with pytest.raises(SystemExit, match="^python -m training student: --teacher is required"):
+        main(["student", "--bags", str(bags), "--out", str(tmp_path / "s"), "--device", "cpu"])
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("stage", ["teacher", "student"])
+@pytest.mark.parametrize("option", [["--lr", "-1"], ["--lr", "0"], ["--lr", "nan"], ["--min-lr", "-0.5"],
+                                    ["--weight-decay", "-0.1"]])
+def test_learning_rates_are_checked_before_anything_is_written(bags, tmp_path, capsys, stage, option):
+    """AdamW refused them only after the data had loaded, leaving an empty --out."""
+    from training.__main__ import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main([stage, "--bags", str(bags), "--out", str(tmp_path / "run"), "--cache", str(tmp_path / "cache"),
+              *(["--ablation", "none"] if stage == "student" else []), *option])
+    assert exit_info.value.code == 2
+    assert f"argument {option[0]}: expected a number >" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "cache").exists()
+
+
+def _tiny_student_checkpoint(path: Path, config: dict | None = None, model: dict | None = None) -> Path:
+    """A student checkpoint as `fit` writes it (untrained weights), optionally with another config or weights."""
+    preset = student_preset("streaming", "tiny", 32)
+    torch.save({"model": build_student(preset).state_dict() if model is None else model,
+                "meta": {"config": preset.to_dict() if config is None else config}}, path)
+    return path
+
+
+def test_checkpoints_with_the_wrong_contents_are_one_line(bags, teacher_ckpt, tmp_path, capsys):
+    """A checkpoint that loads but cannot be the stage's model (a config field this version lacks, no config,
+    meta not a dict, weights of another model) was a TypeError, KeyError, AttributeError or torch's many-line
+    size-mismatch list; now one line: <path> is not a compatible <stage> checkpoint: <why>."""
+    from training.__main__ import main
+
+    teacher = torch.load(teacher_ckpt, weights_only=True)
+    student = student_preset("streaming", "tiny", 32).to_dict()
+
+    def teacher_with(name: str, **changes) -> Path:
+        torch.save({**teacher, **changes}, tmp_path / name)
+        return tmp_path / name
+
+    cases = {
+        teacher_with("t_bogus.pt", meta={**teacher["meta"], "config": {**teacher["meta"]["config"], "bogus": 1}}):
+            "its model config cannot be built (unknown config field 'bogus')",
+        teacher_with("t_empty.pt", model={}, meta={}): "its meta holds no model config",
+        teacher_with("t_meta.pt", meta=[1]): "its meta is a list, not a dict",
+        teacher_with("t_config.pt", meta={"config": "abc"}): "its model config is a str, not a dict",
+        teacher_with("t_width.pt", meta={**teacher["meta"], "config": {**teacher["meta"]["config"], "width": 64}}):
+            "25 weights have other shapes than its config gives (e.g. temporal.weight: (32, 32, 3) saved, "
+            "(64, 32, 3) expected)",
+        teacher_with("t_list.pt", model=[1]): "its model is not a dict of tensors",
+    }
+    for path, reason in cases.items():
+        expected = f"{path} is not a compatible teacher checkpoint: {reason}"
+        for command in (["evaluate-teacher", "--teacher", str(path), "--bags", str(bags), "--out",
+                         str(tmp_path / "r")],
+                        ["student", "--teacher", str(path), "--bags", str(bags), "--out", str(tmp_path / "s"),
+                         "--size", "tiny"]):
+            assert main([*command, "--device", "cpu", "--no-progress"]) == 1
+            err = capsys.readouterr().err.strip()
+            assert err.startswith(f"python -m training {command[0]}: {expected}") and "\n" not in err, err
+        assert not (tmp_path / "r").exists() and not (tmp_path / "s").exists()
+
+    students = {
+        _tiny_student_checkpoint(tmp_path / "s_bogus.pt", {**student, "bogus": 1}):
+            "its model config cannot be built (unknown config field 'bogus')",
+        _tiny_student_checkpoint(tmp_path / "s_pool.pt", {**student, "pool": 0}):
+            "its model config cannot be built (pool must be a whole number >= 1, got 0)",
+        _tiny_student_checkpoint(tmp_path / "s_embed.pt", {**student, "embed_dim": 64}):
+            "5 weights have other shapes than its config gives",
+        _tiny_student_checkpoint(tmp_path / "s_missing.pt", model={}):
+            "53 weights are missing (e.g. frame_encoder.features.0.0.weight)",
+    }
+    for path, reason in students.items():
+        with pytest.raises(ValueError) as info:
+            load_student(path)  # what export and resim-psnr load students with
+        assert str(info.value).startswith(f"{path} is not a compatible student checkpoint: {reason}")
+        assert "\n" not in str(info.value)
+    with pytest.raises(ValueError, match="is not a compatible student checkpoint: its meta holds no model config"):
+        load_student(teacher_with("empty.pt", model={}, meta={}))
+    assert load_student(_tiny_student_checkpoint(tmp_path / "good.pt"))[1]["config"] == student
+
+
+def test_a_resumed_run_whose_last_checkpoint_has_an_unknown_config_field_is_one_line(bags, tmp_path):
+    out = tmp_path / "s"
+    out.mkdir()
+    config = student_preset("streaming", "tiny", 32).to_dict()
+    _tiny_student_checkpoint(out / engine.LAST, {**config, "bogus": 1})
+    with pytest.raises(ValueError, match=re.escape(f"{out / engine.LAST} is not a compatible student checkpoint: "
+                                                   "unknown config field 'bogus' (or delete")):
+        run_student(_args(bags, out, tmp_path / "cache", epochs=1, kind="streaming", ablation="none", alpha=0.5,
+                          full_clips=False))
+
+
+def test_an_onnx_model_or_a_foreign_pickle_passed_as_a_checkpoint_is_one_line(bags, tmp_path, capsys):
+    """torch's refusal spanned 6 lines and advised weights_only=False, which would run the file's code."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    from training.__main__ import main
+
+    graph = helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "g",
+                              [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])])
+    model = tmp_path / "student.onnx"
+    onnx.save(helper.make_model(graph), str(model))
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"model": {}, "meta": {}, "args": Namespace(lr=1.0)}, foreign)
+    cases = {model: f"{model} is an ONNX model (what `python -m training export` writes), not a checkpoint; pass "
+                    "the training run's best.pt",
+             foreign: f"{foreign} is not a readable checkpoint (it holds objects other than tensors and plain values "
+                      "(Unsupported global: GLOBAL argparse.Namespace was not an allowed global by default)); copy "
+                      "it again or retrain"}
+    for path, expected in cases.items():
+        for command in (["evaluate-teacher", "--teacher", str(path), "--bags", str(bags), "--out",
+                         str(tmp_path / "r")],
+                        ["student", "--teacher", str(path), "--bags", str(bags), "--out", str(tmp_path / "s")]):
+            assert main([*command, "--device", "cpu", "--no-progress"]) == 1
+            assert capsys.readouterr().err.strip() == f"python -m training {command[0]}: {expected}"
+        with pytest.raises(ValueError) as info:
+            load_student(path)
+        assert str(info.value) == expected
+
+
+def test_report_names_the_episode_of_an_unknown_material(tmp_path, capsys):
+    """It blamed the whole "frames"["25"] list with Python's "tuple.index(x): x not in tuple"."""
+    from training.__main__ import main
+
+    record = {"episode_id": "e1", "true_material": "honey", "true_parameters": {"youngs_modulus": 1e5},
+              "probabilities": [0.5, 0.3, 0.2], "raw_parameters": [1e5, 0.3, 1e3, 30.0]}
+    path = tmp_path / "predictions.json"
+    path.write_text(json.dumps({"frames": {"25": [{**record, "episode_id": "e0", "true_material": "jelly"}, record]}}))
+    assert main(["report", "--predictions", str(path), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"python -m training report: {path}: \"frames\"[\"25\"]: episode 'e1' has the unknown "
+                          "material 'honey' (expected one of jelly, plasticine, sand); pass a predictions.json"), err
+    assert "\n" not in err and not (tmp_path / "out").exists()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import shutil
 
 import numpy as np
 import pytest
@@ -239,6 +240,45 @@ def test_a_bag_with_nothing_readable_is_left_out_saying_why(tmp_path, caplog):
     assert ds.problems == [f"nothing readable in {file}: it is truncated before its first complete chunk (300 bytes; "
                            "was the writer killed?)", f"{cut} holds no complete episode; left out"]
     assert ds.problems[0] in caplog.messages
+
+
+@pytest.mark.parametrize("damage, reason", [
+    (lambda shard: (shard / "trajectories.npy").write_bytes((shard / "trajectories.npy").read_bytes()[:1000]),
+     "trajectories.npy: mmap length is greater than file size"),
+    (lambda shard: (shard / "labels.npy").write_bytes((shard / "labels.npy").read_bytes()[:100]), "labels.npy: EOF"),
+    (lambda shard: (shard / "labels.npy").unlink(), "labels.npy: missing"),
+    (lambda shard: (shard / "meta.json").write_text("{bad"), "meta.json: Expecting property name"),
+    (lambda shard: (shard / "meta.json").write_text("{}"), "meta.json: no lists episode_id"),
+    (lambda shard: (shard / "meta.json").write_text("[]"), "meta.json: a JSON list, not an object"),
+    (lambda shard: (shard / "meta.json").unlink(), "meta.json: missing"),
+])
+def test_a_damaged_cache_folder_is_named_with_how_to_rebuild_it(bags, tmp_path, capsys, damage, reason):
+    """A cache folder damaged after it was written (numpy's and json's own errors named neither the folder nor
+    the file) is one line naming both and saying that deleting the folder rebuilds it."""
+    from training.__main__ import main
+
+    cache = tmp_path / "cache"
+    data.load_dataset(bags, cache, progress=False)
+    shard = cache / data.bag_key(bags / "a")
+    damage(shard)
+    assert main(["cache", "--bags", str(bags), "--cache", str(cache)]) == 1
+    line = capsys.readouterr().err.strip().splitlines()[-1]  # (after the progress bar's)
+    assert line.startswith(f"python -m training cache: the cache folder {shard} is damaged ({reason}"), line
+    assert line.endswith("; delete that folder and it is rebuilt from its bag on the next run"), line
+    shutil.rmtree(shard)
+    assert main(["cache", "--bags", str(bags), "--cache", str(cache)]) == 0  # as it says: rebuilt
+
+
+@pytest.mark.parametrize("size", [["0", "0"], ["-4", "8"], ["32", "x"]])
+def test_the_cache_commands_input_size_is_checked_by_argparse(bags, tmp_path, capsys, size):
+    """--input-size below 1 was a cv2 assertion traceback after the bags were decoded."""
+    from training.__main__ import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["cache", "--bags", str(bags), "--cache", str(tmp_path / "cache"), "--input-size", *size])
+    assert exit_info.value.code == 2
+    assert "argument --input-size: expected a whole number >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "cache").exists()
 
 
 def test_missing_bags_error_says_what_to_do(tmp_path):

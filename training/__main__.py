@@ -8,10 +8,13 @@ import sys
 
 
 def _cache_parser(p: argparse.ArgumentParser) -> None:
+    from ad_estimator.cli import positive
+
     p.description = "Decode bags into the array cache (done on demand by every stage; this just does it first)."
     p.add_argument("--bags", required=True, help="folder of .mcap bags (searched recursively)")
     p.add_argument("--cache", default=".cache/training", help="array cache folder (keyed by bag content)")
-    p.add_argument("--input-size", type=int, nargs=2, metavar=("H", "W"), action="append", default=[],
+    # positive: a size below 1 failed in cv2.resize with an assertion traceback
+    p.add_argument("--input-size", type=positive, nargs=2, metavar=("H", "W"), action="append", default=[],
                    help="also cache the videos resized for a student of this input size (repeatable)")
     p.add_argument("--coverage", action="store_true",
                    help="keep the masks' grey levels, for students trained with --set mask_levels=coverage (bags "

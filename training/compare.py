@@ -7,13 +7,15 @@ scores nothing again, and reports in the paper's column layout (ad_estimator.met
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import textwrap
 from pathlib import Path
 
 import numpy as np
 
-from ad_estimator.metrics import json_text, markdown_table, read_frames_json, table_cell, table_labels, table_values
+from ad_estimator.metrics import (json_text, markdown_table, read_frames_json, table_cell, table_columns,
+                                  table_labels)
 from ad_sim.materials import FRAME_COUNT
 
 
@@ -47,11 +49,31 @@ def read_run(path: Path, frames: int, which: str) -> tuple[Path, dict[str, float
     if str(frames) not in metrics["frames"]:
         raise ValueError(f"{file} has no entry for {frames} frames (it has {', '.join(metrics['frames'])}); choose "
                          "one of those with --frames")
-    try:
-        values = table_values(metrics["frames"][str(frames)], which)
-    except (KeyError, TypeError) as exc:
-        raise ValueError(f"{file}: its {frames}-frame metrics lack {exc}; {hint}") from None
-    return file, {label: math.nan if v is None else float(v) for label, v in zip(table_labels(), values)}
+    entry = metrics["frames"][str(frames)]
+    # Walked here, not by table_values, so that whatever is missing or not a number is named by its field
+    # (table_values' KeyError or TypeError text named none: "lack list indices must be integers ...").
+    cells = {}
+    paths = [["families", family, "acc"] if name is None else ["families", family, which, name]
+             for family, _, name in table_columns()] + [["regl1"]]  # table_values' fields, in table_labels' order
+    for keys, label in zip(paths, table_labels()):
+        value, field = entry, f'"frames"["{frames}"]'
+        for key in keys:
+            if not isinstance(value, dict):
+                raise ValueError(f"{file}: {field} is {_json_kind(value)}, not an object; {hint}")
+            if key not in value:
+                raise ValueError(f"{file}: its {frames}-frame metrics lack {field}[\"{key}\"]; {hint}")
+            value, field = value[key], f'{field}["{key}"]'
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise ValueError(f"{file}: {field} is {_json_kind(value)}, not a number; {hint}")
+        cells[label] = math.nan if value is None else float(value)
+    return file, cells
+
+
+def _json_kind(value) -> str:
+    """A JSON value as an error names it: "abc", true, null; a list or an object by its kind alone."""
+    if isinstance(value, (list, dict)):
+        return "a list" if isinstance(value, list) else "an object"
+    return json.dumps(value)
 
 
 def _sd(values: np.ndarray) -> float:

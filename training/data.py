@@ -239,6 +239,41 @@ def _write_shard(folder: Path, episodes: list[dict], source_problems: list[str])
         shutil.rmtree(tmp)  # another process cached the same bag first
 
 
+_META_KEYS = ("episode_id", "shape", "split", "material", "seed")
+
+
+def damaged_shard(folder: Path, name: str, exc: Exception) -> ValueError:
+    """The one-line error for a file `name` of a cache folder that cannot be read (truncated, removed,
+    edited): which folder and file, and that deleting the folder rebuilds it from its bag (numpy's or
+    json's own text named neither)."""
+    if isinstance(exc, FileNotFoundError):
+        reason = "missing"
+    else:  # the first sentence: numpy's advice on pickles does not apply to a cache
+        reason = (str(exc).strip().splitlines() or [""])[0].split(". ")[0] or type(exc).__name__
+    return ValueError(f"the cache folder {folder} is damaged ({name}: {reason}); delete that folder and it is "
+                      "rebuilt from its bag on the next run")
+
+
+def shard_meta(folder: Path) -> dict:
+    """A cache folder's meta.json, checked (damaged_shard if it cannot be used)."""
+    try:
+        meta = json.loads((folder / "meta.json").read_text())
+        if not isinstance(meta, dict):
+            raise ValueError(f"a JSON {type(meta).__name__}, not an object")
+        if missing := [k for k in (*_META_KEYS, "source_problems") if not isinstance(meta.get(k), list)]:
+            raise ValueError(f"no lists {', '.join(missing)}")
+    except (OSError, ValueError) as exc:  # (json's and Unicode decode errors are ValueErrors)
+        raise damaged_shard(folder, "meta.json", exc) from None
+    return meta
+
+
+def _shard_array(folder: Path, name: str, mmap: bool = False) -> np.ndarray:
+    try:
+        return np.load(folder / name, mmap_mode="r" if mmap else None)
+    except (OSError, ValueError, EOFError) as exc:  # missing, truncated ("mmap length is greater ..."), not .npy
+        raise damaged_shard(folder, name, exc) from None
+
+
 class Dataset:
     """All instances of a set of bags; small arrays in memory, big ones memory-mapped per shard."""
 
@@ -249,15 +284,15 @@ class Dataset:
         self.problems = list(problems)  # what in the source bags was left out (episodes, whole bags, truncation)
 
         def load(name: str, mmap: bool = False) -> list[np.ndarray]:
-            return [np.load(s / name, mmap_mode="r" if mmap else None) for s in shards]
+            return [_shard_array(s, name, mmap) for s in shards]
 
         self._trajectories = load("trajectories.npy", mmap=True)
         self._videos = load("videos.npy", mmap=True)
         self.labels = np.concatenate(load("labels.npy"))
         self.params_si, self.params_norm, self.param_mask = (
             np.concatenate(load(f"{name}.npy")).reshape(-1, 4) for name in ("params_si", "params_norm", "param_mask"))
-        metas = [json.loads((s / "meta.json").read_text()) for s in shards]
-        self.meta = {k: sum((m[k] for m in metas), []) for k in ("episode_id", "shape", "split", "material", "seed")}
+        metas = [shard_meta(s) for s in shards]
+        self.meta = {k: sum((m[k] for m in metas), []) for k in _META_KEYS}
         self.episode_ids: list[str] = self.meta["episode_id"]
         # Global instance index -> (shard, row); global video index -> (shard, row) and its instance.
         self._inst_loc = [(s, r) for s, a in enumerate(self._trajectories) for r in range(len(a))]
@@ -335,9 +370,11 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True,
     for path in tqdm(paths, desc="cache bags", disable=not progress, unit="bag"):
         folder = cache_dir / (bag_key(path) + ("-coverage" if coverage else ""))
         if (folder / "meta.json").exists():
-            source_problems = json.loads((folder / "meta.json").read_text())["source_problems"]
+            source_problems = shard_meta(folder)["source_problems"]
             for problem in source_problems:
                 log.warning("cached from an incomplete bag: %s", problem)
+        elif folder.exists():  # shards appear whole (_write_shard renames them in): this one lost its meta.json
+            raise damaged_shard(folder, "meta.json", FileNotFoundError())
         else:
             try:
                 episodes, source_problems = read_bag(path, coverage)
@@ -400,7 +437,7 @@ def resized_videos(dataset: Dataset, size: tuple[int, int], progress: bool = Tru
             tmp = path.with_name(path.name + f".tmp{os.getpid()}.npy")
             np.save(tmp, resize_masks(np.asarray(videos), size).astype(np.float16))
             os.replace(tmp, path)
-        out.append(np.load(path, mmap_mode="r"))
+        out.append(_shard_array(shard, path.name, mmap=True))
     return out
 
 

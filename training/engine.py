@@ -124,9 +124,39 @@ def save_checkpoint(path: Path, state: dict) -> None:
     os.replace(tmp, path)
 
 
+def _is_onnx(path: str | Path) -> bool:
+    """Whether `path` holds an ONNX model (what `export` writes, easily passed for its checkpoint)."""
+    try:
+        import onnx
+
+        model = onnx.load(str(path), load_external_data=False)
+        return bool(model.ir_version) and len(model.graph.node) > 0
+    except Exception:  # not protobuf at all: not an ONNX model
+        return False
+
+
+def _short_reason(e: Exception) -> str:
+    """A load error in one line. torch's weights-only refusal spans several lines and advises loading
+    with weights_only=False, which a foreign file must not be: only its unpickler's own reason is kept."""
+    text = str(e)
+    if "WeightsUnpickler error:" in text:
+        detail = text.split("WeightsUnpickler error:", 1)[1].strip().split("\n")[0].split(". ")[0].rstrip(".")
+        return f"it holds objects other than tensors and plain values ({detail})"
+    first = next((line.strip() for line in text.splitlines() if line.strip()), "")
+    if isinstance(e, ValueError) and first:  # ours (e.g. a config's field), already worded for a reader
+        return first
+    return f"{type(e).__name__}: {first}" if first else type(e).__name__
+
+
+def incompatible(path: str | Path, stage: str, reason: str) -> ValueError:
+    """The one-line error for a checkpoint that loads but cannot be this stage's model."""
+    return ValueError(f"{path} is not a compatible {stage} checkpoint: {reason}")
+
+
 def load_checkpoint(path: str | Path, stage: str | None = None) -> dict:
     """A checkpoint written by `fit`, on the CPU, with a clear error for a truncated or foreign file
-    and, with `stage` ("teacher" or "student"), for a checkpoint of the other stage."""
+    (an ONNX model named as such) and, with `stage` ("teacher" or "student"), for a checkpoint of the
+    other stage or one without a model config (`model_from_checkpoint` checks the config and weights)."""
     if Path(path).is_dir():
         raise ValueError(f"{path} is a folder; pass a checkpoint in it, e.g. {Path(path) / BEST}")
     try:
@@ -134,16 +164,59 @@ def load_checkpoint(path: str | Path, stage: str | None = None) -> dict:
     except FileNotFoundError:
         raise
     except Exception as e:  # a truncated archive, a pickle with foreign objects, not a torch file at all
-        raise ValueError(f"{path} is not a readable checkpoint ({type(e).__name__}: {e}); "
-                         "copy it again or retrain") from e
+        if _is_onnx(path):
+            raise ValueError(f"{path} is an ONNX model (what `python -m training export` writes), not a checkpoint; "
+                             "pass the training run's best.pt") from e
+        raise ValueError(f"{path} is not a readable checkpoint ({_short_reason(e)}); copy it again or "
+                         "retrain") from e
     if not isinstance(state, dict) or not {"model", "meta"} <= state.keys():
         raise ValueError(f"{path} is not a checkpoint written by python -m training (it has no model and meta)")
-    kind = state["meta"].get("config", {}).get("kind")  # every StudentConfig has a kind, no TeacherConfig has
+    meta = state["meta"]
+    if not isinstance(meta, dict):  # (below, .get on it would be an AttributeError)
+        if stage:
+            raise incompatible(path, stage, f"its meta is a {type(meta).__name__}, not a dict")
+        raise ValueError(f"{path} is not a checkpoint written by python -m training (its meta is not a dict)")
+    if stage and not isinstance(meta.get("config"), dict):  # (else a KeyError where the model is built)
+        config = meta.get("config")
+        raise incompatible(path, stage, "its meta holds no model config" if config is None else
+                           f"its model config is a {type(config).__name__}, not a dict")
+    kind = meta.get("config", {}).get("kind")  # every StudentConfig has a kind, no TeacherConfig has
     if stage == "teacher" and kind:
         raise ValueError(f"{path} is a {kind} student's checkpoint, not a teacher's")
     if stage == "student" and not kind:
         raise ValueError(f"{path} is a teacher's checkpoint, not a student's")
     return state
+
+
+def model_from_checkpoint(path: str | Path, stage: str, state: dict,
+                          build: Callable[[dict], torch.nn.Module]) -> torch.nn.Module:
+    """The model that `build` makes from the config of `state` (load_checkpoint(path, stage)), with the
+    checkpoint's weights. A config that cannot be built (an unknown field, a bad value) or weights
+    that do not fit it are one line (incompatible), not a TypeError or torch's many-line size-mismatch list."""
+    try:
+        model = build(state["meta"]["config"])
+    except Exception as e:  # the config is the file's content: anything it makes fail is the file's fault
+        raise incompatible(path, stage, f"its model config cannot be built ({_short_reason(e)})") from None
+    weights = state["model"]
+    if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor) for v in weights.values()):
+        raise incompatible(path, stage, "its model is not a dict of tensors")
+    expected = model.state_dict()
+    missing = [k for k in expected if k not in weights]
+    unexpected = [k for k in weights if k not in expected]
+    resized = [k for k in expected if k in weights and weights[k].shape != expected[k].shape]
+    if missing or unexpected or resized:
+        parts = []
+        if resized:
+            k = resized[0]
+            parts.append(f"{len(resized)} weights have other shapes than its config gives (e.g. {k}: "
+                         f"{tuple(weights[k].shape)} saved, {tuple(expected[k].shape)} expected)")
+        if missing:
+            parts.append(f"{len(missing)} weights are missing (e.g. {missing[0]})")
+        if unexpected:
+            parts.append(f"{len(unexpected)} weights are not the config's model's (e.g. {unexpected[0]})")
+        raise incompatible(path, stage, "; ".join(parts))
+    model.load_state_dict(weights)
+    return model
 
 
 def wants_on_device(choice: str, rt: Runtime) -> bool:
@@ -219,7 +292,11 @@ def check_resumable(out_dir: Path, recipe: dict, config: dict, stage: str,
         raise ValueError(f"{e} (or delete {last} to start this run over)") from None
     recorded = state.get("recipe") or {"--select": state.get("select", "score")}
     check_recipe(last, recorded, recipe)
-    saved = saved_config(state["meta"].get("config", {}))
+    try:
+        saved = saved_config(state["meta"]["config"])
+    except (TypeError, ValueError) as e:  # e.g. a field this version does not know
+        raise ValueError(f"{incompatible(last, stage, _short_reason(e))} (or delete {last} to start this run "
+                         "over)") from None
     if differing := [key for key in sorted(saved.keys() | config.keys()) if saved.get(key) != config.get(key)]:
         change = ", ".join(f"{key} {saved.get(key)} -> {config.get(key)}" for key in differing)
         raise ValueError(f"{last} holds another model ({change}: set by --size, --kind, --previous-frames, "

@@ -18,7 +18,7 @@ from ad_estimator.metrics import (PARAMETER_NAMES, TEMPORAL_OOD_FRAMES, FrameCou
                                   in_metric_order, json_text, read_frames_json, write_report)
 from ad_estimator.model import EstimatorModel
 from ad_estimator.window import clip_output
-from ad_sim.materials import FRAME_COUNT
+from ad_sim.materials import FAMILIES, FRAME_COUNT
 from training import data
 
 #: Prefix lengths scored: the full clip, the temporal-OOD rows and the anytime curve down to 10 frames.
@@ -133,6 +133,11 @@ def read_predictions(path: str | Path) -> tuple[dict[int, Predictions], dict]:
     names = saved.get("parameter_names") or PARAMETER_NAMES
     by_frames = {}
     for k, records in saved["frames"].items():
+        # An unknown material is named with its episode (from_episodes' own text was "tuple.index(x): x not in tuple").
+        for r in records if isinstance(records, list) else []:
+            if isinstance(r, dict) and "true_material" in r and r["true_material"] not in FAMILIES:
+                raise ValueError(f'{path}: "frames"["{k}"]: episode {r.get("episode_id")!r} has the unknown material '
+                                 f'{r["true_material"]!r} (expected one of {", ".join(FAMILIES)}); {what}')
         try:
             if records:
                 by_frames[int(k)] = Predictions.from_episodes(records, names)

@@ -14,8 +14,8 @@ from tqdm import tqdm
 
 from ad_estimator.cli import count, fraction
 from training import data
-from training.engine import (BEST, check_resumable, fit, init_runtime, load_checkpoint, main_first, seed_everything,
-                             wants_on_device, weights_digest)
+from training.engine import (BEST, check_resumable, fit, init_runtime, load_checkpoint, main_first,
+                             model_from_checkpoint, seed_everything, wants_on_device, weights_digest)
 from training.models.common import align_loss, task_loss
 from training.models.student import FRAME_COUNT, StudentConfig, build_student, override_config, student_preset
 from training.models.teacher import TEACHER_PRESETS
@@ -23,6 +23,8 @@ from training.train_teacher import (RECIPE_OPTIONS, add_common_args, fit_config,
                                     teacher_targets)
 
 ABLATIONS = ("none", "align_only", "full")
+# SystemExit's messages carry the prefix that __main__ gives ValueErrors, so that all errors read alike.
+PROG = "python -m training student"
 # SPEC 9: 0.1 align + 1.0 CE + 0.2 RegL1 (+ a small weight on the uncertainty head's NLL).
 ALIGN_WEIGHT, CE_WEIGHT, REGL1_WEIGHT, NLL_WEIGHT = 0.1, 1.0, 0.2, 0.05
 MIN_PREFIX = 10  # the streaming student sees random prefixes of 10..25 frames: estimates are anytime
@@ -142,9 +144,7 @@ def student_loss(ablation: str, alpha: float, align_weight: float = ALIGN_WEIGHT
 
 def load_student(path: str | Path, device="cpu") -> tuple[torch.nn.Module, dict]:
     state = load_checkpoint(path, "student")
-    config = StudentConfig.from_dict(state["meta"]["config"])
-    model = build_student(config)
-    model.load_state_dict(state["model"])
+    model = model_from_checkpoint(path, "student", state, lambda config: build_student(StudentConfig.from_dict(config)))
     return model.to(device).eval(), state["meta"]
 
 
@@ -213,10 +213,10 @@ def run(args) -> Path:
     seed_everything(args.seed)
     rt = init_runtime(args.device)
     if (args.encoder_channels or args.previous_frames) and args.kind != "streaming":
-        raise SystemExit("--encoder-channels and --previous-frames apply to the streaming student only")
+        raise SystemExit(f"{PROG}: --encoder-channels and --previous-frames apply to the streaming student only")
     if args.ablation != "none" and not args.teacher:
-        raise SystemExit("--teacher is required for --ablation align_only/full (train one with `python -m training "
-                         "teacher`), or use --ablation none")
+        raise SystemExit(f"{PROG}: --teacher is required for --ablation align_only/full (train one with `python -m "
+                         "training teacher`), or use --ablation none")
     teacher = load_teacher(args.teacher, rt.device) if args.teacher else None
     z_dim = teacher.config.z_dim if teacher else TEACHER_PRESETS[args.size].z_dim
     config = student_preset(args.kind, args.size, z_dim)
@@ -230,7 +230,7 @@ def run(args) -> Path:
         # give) fails early; loading the data draws no torch random numbers, so the init is as before.
         model = build_student(config)
     except ValueError as e:
-        raise SystemExit(str(e)) from None
+        raise SystemExit(f"{PROG}: {e}") from None
     run_recipe = student_recipe(args, rt, teacher)
     resumed = check_resumable(Path(args.out), run_recipe, config.to_dict(), "student",
                               saved_config=lambda saved: StudentConfig.from_dict(saved).to_dict())

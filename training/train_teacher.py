@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -16,7 +17,7 @@ from ad_estimator.metrics import Predictions
 from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
 from training import data
 from training.engine import (BEST, LAST, SELECT_METRICS, FitConfig, check_recipe, check_resumable, fit, init_runtime,
-                             load_checkpoint, main_first, seed_everything, wants_on_device)
+                             load_checkpoint, main_first, model_from_checkpoint, seed_everything, wants_on_device)
 from training.evaluate import print_results, write_evaluation
 from training.models.common import task_loss
 from training.models.teacher import TEACHER_PRESETS, Teacher, TeacherConfig
@@ -120,8 +121,7 @@ def teacher_loss(model, batch, train: bool):
 
 def load_teacher(path: str | Path, device="cpu") -> Teacher:
     state = load_checkpoint(path, "teacher")
-    teacher = Teacher(TeacherConfig(**state["meta"]["config"]))
-    teacher.load_state_dict(state["model"])
+    teacher = model_from_checkpoint(path, "teacher", state, lambda config: Teacher(TeacherConfig.from_dict(config)))
     return teacher.to(device).eval()
 
 
@@ -150,6 +150,19 @@ def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: 
     return Predictions(ds.labels, ds.params_si, np.concatenate(probs), si, list(ds.episode_ids))
 
 
+def _number(above: bool):
+    """argparse type: a finite number > 0 (`above`) or >= 0."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and (value > 0 if above else value >= 0)):
+            raise argparse.ArgumentTypeError(f"expected a number {'>' if above else '>='} 0, got {text!r}")
+        return value
+    return parse
+
+
 def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr: float = 1e-4) -> None:
     p.add_argument("--bags", required=True, help="folder of training .mcap bags (searched recursively)")
     p.add_argument("--cache", default=".cache/training", help="array cache folder (keyed by bag content)")
@@ -159,10 +172,11 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
                         "defaults (SPEC 9's paper recipe; `pipeline` sets per-size ones)")
     p.add_argument("--epochs", type=positive, default=epochs, help=f"epochs (default {epochs}; paper values in SPEC 9)")
     p.add_argument("--batch-size", type=positive, default=batch_size, help="per-process batch size")
-    p.add_argument("--lr", type=float, default=lr, help="AdamW peak learning rate (cosine to --min-lr)")
-    p.add_argument("--min-lr", type=float, default=1e-6,
+    # Checked here, before anything is written: AdamW refuses them only once the data has loaded.
+    p.add_argument("--lr", type=_number(above=True), default=lr, help="AdamW peak learning rate (cosine to --min-lr)")
+    p.add_argument("--min-lr", type=_number(above=False), default=1e-6,
                    help="floor of the cosine schedule (approached over the last steps)")
-    p.add_argument("--weight-decay", type=float, default=1e-4, help="AdamW weight decay")
+    p.add_argument("--weight-decay", type=_number(above=False), default=1e-4, help="AdamW weight decay")
     p.add_argument("--val-fraction", type=fraction, default=0.1, help="instances held out for validation")
     p.add_argument("--seed", type=int, default=0,
                    help="seeds initialisation, the validation split (--val-fraction), batch order, "

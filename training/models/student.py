@@ -53,8 +53,18 @@ class StudentConfig:
     dropout: float = 0.1
 
     def __post_init__(self):
-        if self.mask_levels not in MASK_LEVELS:
-            raise ValueError(f"mask_levels is one of {', '.join(MASK_LEVELS)}, got {self.mask_levels!r}")
+        # Every way of making a config (presets, --set, a checkpoint's meta) is checked here, so that a
+        # bad value is one line naming the field, not a ZeroDivisionError or a torch error (after the data
+        # loaded, or after training a model that cannot be exported).
+        for field in dataclasses.fields(self):
+            if problem := field_problem(field.name, getattr(self, field.name)):
+                raise ValueError(problem)
+        if self.kind == "streaming" and self.temporal_width % self.temporal_heads:
+            raise ValueError(f"temporal_width {self.temporal_width} is not divisible by temporal_heads "
+                             f"{self.temporal_heads}")
+        if self.kind == "uniformer" and len(self.dims) != len(self.depths):
+            # zip() would silently drop the stages that one of them lacks
+            raise ValueError(f"dims {self.dims} and depths {self.depths} must have one entry per stage each")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -65,7 +75,44 @@ class StudentConfig:
         d = dict(d)
         if "previous_frame" in d:  # checkpoints before previous_frames: a flag for one previous frame
             d["previous_frames"] = int(d.pop("previous_frame"))
+        if unknown := sorted(set(d) - {f.name for f in dataclasses.fields(cls)}):  # a ValueError, not a TypeError
+            raise ValueError(f"unknown config field{'s' * (len(unknown) > 1)} {', '.join(map(repr, unknown))}")
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+# What each field of StudentConfig may hold (field_problem): sizes are whole numbers >= 1, counts >= 0.
+_SIZES = ("z_dim", "pool", "embed_dim", "temporal_width", "temporal_heads")
+_COUNTS = ("previous_frames", "temporal_depth", "global_stages")
+
+
+def _whole(value, least: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= least
+
+
+def field_problem(name: str, value) -> str | None:
+    """Why `value` cannot be StudentConfig's field `name` (one line naming it), or None if it can."""
+    if name == "kind" and value not in ("streaming", "uniformer"):
+        return f"kind is streaming or uniformer, got {value!r}"
+    if name == "mask_levels" and value not in MASK_LEVELS:
+        return f"mask_levels is one of {', '.join(MASK_LEVELS)}, got {value!r}"
+    if name in _SIZES and not _whole(value, 1):
+        return f"{name} must be a whole number >= 1, got {value!r}"
+    if name in _COUNTS and not _whole(value, 0):
+        return f"{name} must be a whole number >= 0, got {value!r}"
+    if name == "input_size" and not (isinstance(value, (tuple, list)) and len(value) == 2
+                                     and all(_whole(v, 1) for v in value)):
+        return f"input_size must be two whole numbers >= 1 (height,width), got {value!r}"
+    if name in ("channels", "dims") and not (isinstance(value, (tuple, list)) and value
+                                             and all(_whole(v, 1) for v in value)):
+        return f"{name} must be one or more whole numbers >= 1, got {value!r}"
+    if name == "depths" and not (isinstance(value, (tuple, list)) and value and all(_whole(v, 0) for v in value)):
+        return f"depths must be one or more whole numbers >= 0, got {value!r}"
+    if name == "dropout" and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                  and 0.0 <= value < 1.0):
+        return f"dropout must be a number in [0, 1), got {value!r}"
+    if name == "moments" and not isinstance(value, bool):
+        return f"moments must be true or false, got {value!r}"
+    return None
 
 
 def override_config(config: StudentConfig, assignments: list[str]) -> StudentConfig:
@@ -89,7 +136,12 @@ def override_config(config: StudentConfig, assignments: list[str]) -> StudentCon
                 changes[key] = type(current)(text)
         except ValueError:
             raise ValueError(f"--set {item!r}: {key} takes a value like {current!r}") from None
-    return dataclasses.replace(config, **changes)
+        if problem := field_problem(key, changes[key]):  # read as the right type, but out of range
+            raise ValueError(f"--set {item!r}: {problem}")
+    try:
+        return dataclasses.replace(config, **changes)
+    except ValueError as e:  # fields that do not go together (e.g. temporal_width and temporal_heads)
+        raise ValueError(f"--set {' '.join(map(repr, assignments))}: {e}") from None
 
 
 def student_preset(kind: str, size: str, z_dim: int) -> StudentConfig:
@@ -294,6 +346,11 @@ class UniFormerStudent(nn.Module):
         super().__init__()
         self.config = c = config
         n = len(c.dims)
+        # The stem quarters the image and each later stage halves it: a smaller input leaves no pixel
+        # (a torch error in the first forward pass, after the data loaded).
+        if min(c.input_size) < 4 * 2 ** (n - 1):
+            raise ValueError(f"input size {c.input_size} is too small for {n} stages: the uniformer student needs "
+                             f"at least {4 * 2 ** (n - 1)} pixels a side")
         stages, cin = [], 1
         for i, (dim, depth) in enumerate(zip(c.dims, c.depths)):
             # Stem: 4x spatial and 2x temporal downsampling; later stages halve space only.

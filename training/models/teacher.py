@@ -7,7 +7,7 @@ window of frames turns slices into tube tokens, and a transformer mixes all toke
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import torch
 from torch import nn
@@ -33,6 +33,13 @@ class TeacherConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TeacherConfig":
+        """A checkpoint's config; a field this version lacks is a ValueError naming it (not a TypeError)."""
+        if unknown := sorted(set(d) - {f.name for f in fields(cls)}):
+            raise ValueError(f"unknown config field{'s' * (len(unknown) > 1)} {', '.join(map(repr, unknown))}")
+        return cls(**d)
 
 
 TEACHER_PRESETS = {
