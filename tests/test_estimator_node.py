@@ -349,7 +349,15 @@ def test_each_complete_estimate_is_logged_in_one_line(ros, model_paths, capfd):
     publish_episode(t, falling_masks(seed=14), 10**9)
     assert wait_for(lambda: len(t.estimates) == 1)
     estimate = t.estimates[0]
-    (line,) = [line for line in capfd.readouterr().err.splitlines() if "episode 1:" in line]
+    err = ""
+
+    def logged() -> bool:  # the node logs just after it publishes, so the line may trail the estimate
+        nonlocal err
+        err += capfd.readouterr().err
+        return "episode 1:" in err
+
+    assert wait_for(logged)
+    (line,) = [line for line in err.splitlines() if "episode 1:" in line]
     assert f"episode 1: {estimate.material} p={max(estimate.class_probabilities):.2f}; " in line
     assert line.startswith("[INFO]") and line.endswith(" ms)")
 
