@@ -5,7 +5,8 @@ reliability and durability (transient local for /ad_sim/instance), discovering t
 they appear: by default every simulator topic under topic_prefix (any number of views),
 or the `topics` parameter. Log time of a message is its header stamp (simulated time, so a
 recording made at any speed equals `generate`'s bag) unless stamp_source is "receive";
-publish time is always the receive wall time. SIGINT/SIGTERM finalise the bag; a kill -9
+publish time is always the receive wall time. SIGINT/SIGTERM finalise the bag after taking what
+already arrived (at most DRAIN_MAX seconds; a second signal skips that); a kill -9
 leaves every flushed chunk readable (chunks are flushed every flush_period seconds).
 """
 
