@@ -6,7 +6,7 @@ they appear: by default every simulator topic under topic_prefix (any number of 
 or the `topics` parameter. Log time of a message is its header stamp (simulated time, so a
 recording made at any speed equals `generate`'s bag) unless stamp_source is "receive";
 publish time is always the receive wall time. SIGINT/SIGTERM finalise the bag after taking what
-already arrived (at most DRAIN_MAX seconds; a second signal skips that); a kill -9
+already arrived (for at most 2 s; a second signal skips that); a kill -9
 leaves every flushed chunk readable (chunks are flushed every flush_period seconds).
 """
 
