@@ -203,3 +203,37 @@ def test_evaluate_on_the_train_split_is_warned_about(tmp_path, capsys):
         f"warning: 3 of the 3 instances scored under {tmp_path / 'bags' / 'train'} are from the benchmark's train "
         "split, which models are trained on, so these scores do not measure generalisation; evaluate on the seen "
         "or unseen split (for example bags/paper/unseen)"]
+
+
+def test_an_install_that_fails_half_way_leaves_the_installed_model_whole(tmp_path, monkeypatch):
+    """install() writes the renamed pair and metrics in a staging folder and renames them in, head last:
+    a failure while writing the head (here onnx.save raising) leaves the earlier install as it was."""
+    import onnx
+
+    from estimator_models import build_streaming_model
+    from training import pipeline
+
+    installed = tmp_path / "models"
+    for seed, model_id in ((0, "first"), (1, "second")):
+        (tmp_path / model_id).mkdir()
+        head = build_streaming_model(tmp_path / model_id, seed=seed, model_id=model_id)
+        (tmp_path / model_id / "student.metrics.json").write_text(json.dumps({"model_id": model_id}))
+    pipeline.install(tmp_path / "first" / "student.onnx", tmp_path / "first" / "student.metrics.json", installed)
+    before = {p.name: p.read_bytes() for p in installed.iterdir()}
+    assert sorted(before) == ["default.frame.onnx", "default.metrics.json", "default.onnx"]
+    assert EstimatorModel.load(installed / "default.onnx").model_id == "first"
+    save = onnx.save
+
+    def fail_on_the_head(model, path, *args, **kwargs):
+        if Path(path).name == "default.onnx":
+            raise OSError(28, "No space left on device")
+        return save(model, path, *args, **kwargs)
+
+    monkeypatch.setattr(onnx, "save", fail_on_the_head)
+    with pytest.raises(OSError, match="No space left"):
+        pipeline.install(head, tmp_path / "second" / "student.metrics.json", installed)
+    assert {p.name: p.read_bytes() for p in installed.iterdir()} == before  # no staging folder left either
+    monkeypatch.setattr(onnx, "save", save)
+    pipeline.install(head, tmp_path / "second" / "student.metrics.json", installed)
+    assert EstimatorModel.load(installed / "default.onnx").model_id == "second"
+    assert sorted(p.name for p in installed.iterdir()) == sorted(before)

@@ -7,7 +7,9 @@ finished training (all epochs in last.pt) is not redone.
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
+import tempfile
 import time
 from argparse import Namespace
 from pathlib import Path
@@ -144,14 +146,23 @@ def install(onnx_path: Path, metrics_path: Path, folder: Path, name: str = "defa
     folder.mkdir(parents=True, exist_ok=True)
     frame = export.frame_encoder_path(onnx_path)
     target = folder / f"{name}.onnx"
-    if frame.exists():
-        for source, destination in ((frame, folder / f"{name}.frame.onnx"), (onnx_path, target)):
-            model = onnx.load(str(source))
-            for prop in model.metadata_props:
-                if prop.key == "ad.frame_encoder":
-                    prop.value = f"{name}.frame.onnx"
-            onnx.save(model, str(destination))
-    else:
-        shutil.copyfile(onnx_path, target)
-    shutil.copyfile(metrics_path, folder / f"{name}.metrics.json")
+    # Written in a staging folder in `folder`, then renamed in with the head last (as export_verified does):
+    # a failure or a kill never pairs the bundled head with another model's frame encoder.
+    staging = Path(tempfile.mkdtemp(prefix=f".{name}.partial-", dir=folder))
+    try:
+        if frame.exists():
+            for source, file in ((frame, f"{name}.frame.onnx"), (onnx_path, target.name)):
+                model = onnx.load(str(source))
+                for prop in model.metadata_props:
+                    if prop.key == "ad.frame_encoder":
+                        prop.value = f"{name}.frame.onnx"
+                onnx.save(model, str(staging / file))
+        else:
+            shutil.copyfile(onnx_path, staging / target.name)
+        shutil.copyfile(metrics_path, staging / f"{name}.metrics.json")
+        target.unlink(missing_ok=True)
+        for file in sorted(staging.iterdir(), key=lambda path: path.name == target.name):
+            os.replace(file, folder / file.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     print(f"installed {target}")
