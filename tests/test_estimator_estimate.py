@@ -1,6 +1,7 @@
 """`ad_estimator estimate`: the node's estimates for any bag, offline, without ground truth (no ROS runtime)."""
 import csv
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -401,6 +402,9 @@ def test_an_out_that_is_not_an_estimate_csv_is_refused_and_a_failed_write_keeps_
     assert run(model, bag, "--out", good) == 0
     written = good.read_bytes()
     assert len(written) > 512
+    umask = os.umask(0)
+    os.umask(umask)
+    assert good.stat().st_mode & 0o777 == 0o666 & ~umask  # as open() makes it, not a temporary file's 0600
     limit = "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (512, 512)); "
     code = (limit + "from ad_estimator import estimate; sys.exit(estimate.main(sys.argv[1:]))")
     proc = subprocess.run([sys.executable, "-c", code, "--model", str(model), "--quiet", str(bag), "--out", str(good)],

@@ -242,7 +242,7 @@ def test_an_export_that_fails_verification_replaces_nothing(tmp_path, capsys, mo
     monkeypatch.setattr(export, "verify_export", lambda *args: verify(*args, atol=-1.0))
     assert main(["export", "--checkpoint", str(good), "--out", str(out), "--model-id", "other"]) == 1
     line = capsys.readouterr().err.splitlines()[-1]
-    assert "differs from torch" in line and f"nothing was written to {folder}" in line
+    assert "differs from torch" in line and f"nothing was replaced in {folder}" in line
     assert _files(folder) == before
     # Interrupted (Ctrl-C, or a kill) before the files are moved into place: the previous export stays whole.
     def interrupted(*args):

@@ -163,10 +163,10 @@ def test_replay_of_a_bag_with_an_unusable_metadata_yaml(test_bag, tmp_path, ros_
 
 
 @pytest.mark.parametrize("topic, recorded, unusable, expected", [
-    # what rosbag2 may record from Fast DDS (UNKNOWN history, depth 0 for a discovered publisher), and in the older
-    # numeric form (rmw enums: 0 system default): the rest of the recorded QoS stays
-    (INSTANCE_TOPIC, [{"history": "unknown", "depth": 0, "reliability": "reliable", "durability": "transient_local"}],
-     "history 'unknown', depth 0", ("reliable", "transient_local", "keep_last", 100)),
+    # unknown history with a depth, and the older numeric form (rmw enums: 0 system default): the rest of the
+    # recorded QoS stays
+    (INSTANCE_TOPIC, [{"history": "unknown", "depth": 5, "reliability": "reliable", "durability": "transient_local"}],
+     "history 'unknown'", ("reliable", "transient_local", "keep_last", 5)),
     (MASK_TOPIC, [{"history": 0, "depth": 0, "reliability": 2, "durability": 2}],
      "history 0, depth 0", ("best_effort", "volatile", "keep_last", 100)),
     (MASK_TOPIC, [{"history": "keep_last", "depth": "abc", "reliability": "best_effort", "durability": "volatile"}],
@@ -201,15 +201,34 @@ def test_replay_takes_the_default_for_unusable_recorded_qos(sample_bag, topic, r
         HistoryPolicy[expected[2].upper()], expected[3])
 
 
+def test_what_ros2_bag_record_writes_for_a_discovered_publisher_takes_the_default_quietly(sample_bag):
+    """history 3 (unknown) and depth 0, in rosbag2's string form (ros2/rosbag2#1237 shows it): what every
+    topic of a `ros2 bag record` bag holds, so no warning; reliability and durability are kept."""
+    metadata_file = sample_bag / "metadata.yaml"
+    metadata = yaml.safe_load(metadata_file.read_text())
+    for entry in metadata["rosbag2_bagfile_information"]["topics_with_message_count"]:
+        entry["topic_metadata"]["offered_qos_profiles"] = (
+            "- history: 3\n  depth: 0\n  reliability: 2\n  durability: 1\n  deadline:\n    sec: 9223372036\n"
+            "    nsec: 854775807\n  avoid_ros_namespace_conventions: false")
+    metadata_file.write_text(yaml.safe_dump(metadata))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        topics = replay.recorded_topics(BagReader(sample_bag, raw=True))
+    for _, qos in topics.values():
+        assert (qos.reliability, qos.durability, qos.history, qos.depth) == (
+            ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.TRANSIENT_LOCAL, HistoryPolicy.KEEP_LAST, 100)
+
+
 def test_replay_of_a_bag_with_unusable_recorded_qos_plays_it_all(sample_bag, ros_domain_id):
     """The command line: a warning line for that topic, then the whole bag (it was refused, naming no topic)."""
     metadata_file = sample_bag / "metadata.yaml"
     metadata_file.write_text(metadata_file.read_text().replace("history: keep_last\n        depth: 100",
-                                                               "history: unknown\n        depth: 0", 1))
+                                                               "history: system_default\n        depth: 0", 1))
     proc = run("ad_estimator.replay", str(sample_bag), "--quiet", "--delay", "0", "--rate", "100")
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0 and out.splitlines() == [
-        f"warning: unusable QoS for {INSTANCE_TOPIC} in metadata.yaml (history 'unknown', depth 0); replaying it as "
+        f"warning: unusable QoS for {INSTANCE_TOPIC} in metadata.yaml (history 'system_default', depth 0); "
+        "replaying it as "
         "reliable, transient_local, keep_last, depth 100 (the default for what was unusable)",
         f"replay: published 306 messages from {sample_bag}"], out
 

@@ -211,6 +211,9 @@ def read_bag(bag: Path, coverage: bool = False) -> tuple[list[dict], list[str]]:
     return out, reader.problems + skipped
 
 
+_META_KEYS = ("episode_id", "shape", "split", "material", "seed")  # per-episode lists of a shard's meta.json
+
+
 def _write_shard(folder: Path, episodes: list[dict], source_problems: list[str]) -> None:
     tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
     tmp.mkdir(parents=True, exist_ok=True)
@@ -228,7 +231,7 @@ def _write_shard(folder: Path, episodes: list[dict], source_problems: list[str])
     np.save(tmp / "videos.npy", np.stack(videos).astype(np.uint8))  # every episode has >= 1 complete view
     np.save(tmp / "video_instance.npy", np.array(owner, dtype=np.int64))
     np.save(tmp / "video_view.npy", np.array(views, dtype=np.int64))
-    meta = {key: [e[key] for e in episodes] for key in ("episode_id", "shape", "split", "material", "seed")}
+    meta = {key: [e[key] for e in episodes] for key in _META_KEYS}
     meta["source_problems"] = source_problems
     (tmp / "meta.json").write_text(json.dumps(meta))
     try:
@@ -237,9 +240,6 @@ def _write_shard(folder: Path, episodes: list[dict], source_problems: list[str])
         if not (folder / "meta.json").exists():
             raise
         shutil.rmtree(tmp)  # another process cached the same bag first
-
-
-_META_KEYS = ("episode_id", "shape", "split", "material", "seed")
 
 
 def damaged_shard(folder: Path, name: str, exc: Exception) -> ValueError:

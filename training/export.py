@@ -10,9 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -30,6 +27,7 @@ from ad_sim.materials import (
     PARAMETER_NAMES,
     PARAMETER_RANGES,
 )
+from ad_estimator.cli import staged
 from ad_estimator.model import frame_inputs
 from training.engine import weights_digest
 from training.evaluate import metrics_path
@@ -127,26 +125,16 @@ def export_verified(checkpoint: str | Path, out: str | Path, model_id: str | Non
     out = Path(out)
     _check_out(checkpoint, out)
     model, meta = load_student(checkpoint)  # a bad checkpoint fails before any folder is made
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # In out's own folder (not beside it, as ad_estimator.cli.staged does): os.replace stays on one file
-    # system and needs no write access above it. The files keep their final names there, so the head's
-    # ad.frame_encoder finds its encoder when verified.
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    try:
-        written = _write(model, meta, checkpoint, staging / out.name, model_id)
+    # Staged under their final names, so that the head's ad.frame_encoder finds its encoder when verified;
+    # the head is moved in last (staged's `last`).
+    with staged(out.parent, last=out.name) as folder:
+        written = _write(model, meta, checkpoint, folder / out.name, model_id)
         try:
-            error = verify_export(checkpoint, staging / out.name, seed)
+            error = verify_export(checkpoint, folder / out.name, seed)
         except Exception as exc:  # onnxruntime's errors (InvalidArgument, Fail, ...) share no base beyond Exception
             first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
             raise ValueError(f"the ONNX export of {checkpoint} does not verify in onnxruntime ({first}); nothing "
-                             f"was written to {out.parent}") from exc
-        # The old head goes first and the new one comes last: a kill between these renames leaves no head
-        # (evaluate and the estimator say so) rather than an old head beside a new frame encoder.
-        out.unlink(missing_ok=True)
-        for path in (*written[:-1], metrics_path(written[-1]), written[-1]):
-            os.replace(path, out.parent / path.name)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+                             f"was replaced in {out.parent}") from exc
     return [out.parent / path.name for path in written], error
 
 

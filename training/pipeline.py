@@ -7,14 +7,12 @@ finished training (all epochs in last.pt) is not redone.
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
-import tempfile
 import time
 from argparse import Namespace
 from pathlib import Path
 
-from ad_estimator.cli import count, fraction, positive, torch_device_or_auto
+from ad_estimator.cli import count, fraction, positive, staged, torch_device_or_auto
 from ad_estimator.metrics import compute_metrics, format_table, json_text
 from ad_sim.materials import FRAME_COUNT
 from training import data, evaluate, export, train_student, train_teacher
@@ -143,13 +141,10 @@ def install(onnx_path: Path, metrics_path: Path, folder: Path, name: str = "defa
     the frame-encoder file name in the head's metadata."""
     import onnx
 
-    folder.mkdir(parents=True, exist_ok=True)
     frame = export.frame_encoder_path(onnx_path)
     target = folder / f"{name}.onnx"
-    # Written in a staging folder in `folder`, then renamed in with the head last (as export_verified does):
-    # a failure or a kill never pairs the bundled head with another model's frame encoder.
-    staging = Path(tempfile.mkdtemp(prefix=f".{name}.partial-", dir=folder))
-    try:
+    # Staged, head last: a failure or a kill never pairs the bundled head with another model's frame encoder.
+    with staged(folder, last=target.name) as staging:
         if frame.exists():
             for source, file in ((frame, f"{name}.frame.onnx"), (onnx_path, target.name)):
                 model = onnx.load(str(source))
@@ -160,9 +155,4 @@ def install(onnx_path: Path, metrics_path: Path, folder: Path, name: str = "defa
         else:
             shutil.copyfile(onnx_path, staging / target.name)
         shutil.copyfile(metrics_path, staging / f"{name}.metrics.json")
-        target.unlink(missing_ok=True)
-        for file in sorted(staging.iterdir(), key=lambda path: path.name == target.name):
-            os.replace(file, folder / file.name)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     print(f"installed {target}")

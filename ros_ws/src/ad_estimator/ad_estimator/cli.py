@@ -61,24 +61,28 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 @contextlib.contextmanager
-def staged(out: Path):
-    """Yields a new folder beside `out` to write the output files in; on success they are moved into the
-    folder `out` (each os.replace is atomic), so a failure or a kill half way (a full disk) leaves
-    what `out` held before as it was, instead of a mix of new and old files."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+def staged(folder: Path, last: str | None = None):
+    """Yields a new folder inside `folder` (made if need be) to write output files in, under their final
+    names; on success they are moved into `folder` (os.replace: atomic per file, and on one file system
+    since the staging folder is inside it), so a failure or a kill half way (a full disk) leaves what
+    `folder` held as it was, instead of a mix of new and old files. The file named `last` (a model's head,
+    which names its frame encoder) is removed first and moved in after the others: a kill during the moves
+    then leaves no head rather than an old head beside a new encoder."""
+    folder.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".partial-", dir=folder))
     try:
         yield staging
-        out.mkdir(exist_ok=True)
-        for written in staging.iterdir():
-            os.replace(written, out / written.name)
+        if last is not None:
+            (folder / last).unlink(missing_ok=True)
+        for written in sorted(staging.iterdir(), key=lambda path: path.name == last):
+            os.replace(written, folder / written.name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 
 
 def interruptible(prog: str):
     """Decorates a tool's main(argv) -> int: a Ctrl-C ends it with one line and status 130 instead of a
-    traceback. For tools that write their output only at the end (staged), so nothing is half written."""
+    traceback. For tools that write their output only at the end, through staged, so nothing is half written."""
     def decorate(main):
         @functools.wraps(main)
         def run(argv=None):

@@ -15,9 +15,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
-import os
 import sys
-import tempfile
 import warnings
 from collections import Counter
 from dataclasses import dataclass
@@ -25,7 +23,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ad_estimator.cli import HelpFormatter, interruptible
+from ad_estimator.cli import HelpFormatter, interruptible, staged
 from ad_estimator.evaluate import check_image_topic, check_out, find_bags, image_topics
 from ad_estimator.images import ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
@@ -126,8 +124,11 @@ def csv_row(row: Row) -> list:
 def is_estimate_csv(path: Path) -> bool:
     """Whether `path` starts with the header estimate writes (its first columns, whatever the model)."""
     start = ",".join(FIRST_COLUMNS)
-    with open(path, "rb") as f:
-        return f.read(len(start)) == start.encode()
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(start)) == start.encode()
+    except OSError as exc:  # unreadable: not one we can tell is ours, so not one to overwrite
+        raise ValueError(f"--out {path} exists and cannot be read ({exc.strerror}); pass another --out") from exc
 
 
 def summary_line(row: Row) -> str:
@@ -210,17 +211,11 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     replaced = " (it replaced the file of an earlier run)" if out.exists() else ""  # the default name is per model
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        # written beside it, then renamed over it: a full disk or a kill leaves the earlier CSV whole
-        handle, partial = tempfile.mkstemp(prefix=f".{out.name}.partial-", dir=out.parent)
-        try:
-            with os.fdopen(handle, "w", newline="") as f:
+        with staged(out.parent) as folder:  # a full disk or a kill leaves the earlier CSV whole
+            with open(folder / out.name, "w", newline="") as f:
                 writer = csv.writer(f)
                 writer.writerow(columns(model))
                 writer.writerows(csv_row(r) for r in rows)
-            os.replace(partial, out)
-        finally:
-            Path(partial).unlink(missing_ok=True)
     except OSError as exc:
         print(f"estimate: cannot write {out} ({exc.strerror}); pass another --out", file=sys.stderr)
         return 1

@@ -29,7 +29,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from tqdm import tqdm
 
 from ad_estimator.cli import HelpFormatter
-from ad_sim.dds import non_ros_args, use_fast_heartbeat
+from ad_sim.dds import MAX_QOS_DEPTH, non_ros_args, use_fast_heartbeat
 from ad_sim.rosbag import BagError, BagReader, one_line_warnings
 
 # Used when a bag has no metadata.yaml (a lone .mcap), and for what its offered_qos_profiles leave out or make
@@ -43,7 +43,7 @@ _DURABILITY = {"transient_local": DurabilityPolicy.TRANSIENT_LOCAL, "volatile": 
                1: DurabilityPolicy.TRANSIENT_LOCAL, 2: DurabilityPolicy.VOLATILE}
 _HISTORY = {"keep_last": HistoryPolicy.KEEP_LAST, "keep_all": HistoryPolicy.KEEP_ALL,
             1: HistoryPolicy.KEEP_LAST, 2: HistoryPolicy.KEEP_ALL}
-MAX_DEPTH = 2**31 - 1  # rclpy refuses a larger one (a TypeError from its rmw_qos_profile_t)
+_UNKNOWN_HISTORY = ("unknown", 3)  # RMW_QOS_POLICY_HISTORY_UNKNOWN, by name or enum value
 # time.sleep raises OverflowError past about 292 years (and --rate 1e-300 makes any gap that long): --delay is
 # kept to a day and --rate to 1000 times slower than recorded; the pacing sleeps go in steps of at most a day,
 # so that even a bag with a gap of centuries between log times waits rather than fails.
@@ -55,9 +55,10 @@ MAX_SLEEP_S = 86400.0
 def qos_from_recorded(topic: str, profiles) -> QoSProfile:
     """QoSProfile for a topic from rosbag2's offered_qos_profiles (a list, or the YAML string older bags hold).
 
-    A recorded setting that cannot be used (a malformed entry, system default or unknown, as rosbag2 may record
-    from Fast DDS for discovered publishers, depth 0 with keep_last) takes the topic's default instead, with a
-    warning naming the topic: a bag recorded elsewhere still plays, with the rest of its recorded QoS."""
+    History unknown with depth 0, what rosbag2 records for discovered publishers, takes the default history and
+    depth silently. Any other recorded setting that cannot be used (a malformed entry, system default or unknown,
+    depth 0 with keep_last) takes the topic's default with a warning naming the topic: a bag recorded elsewhere
+    still plays, with the rest of its recorded QoS."""
     default = dict(DEFAULT_QOS, durability="transient_local" if topic in TRANSIENT_LOCAL_TOPICS else "volatile")
     unusable = []
     if isinstance(profiles, str):
@@ -70,6 +71,10 @@ def qos_from_recorded(topic: str, profiles) -> QoSProfile:
         unusable.append(f"not a list of profiles ({profiles!r:.60})")
         profiles = None
     recorded = profiles[0] if profiles else {}
+    if recorded.get("history") in _UNKNOWN_HISTORY and recorded.get("depth") == 0:
+        # What `ros2 bag record` writes for every publisher it discovers (the middleware does not say): the
+        # default keep_last depth is meant, not a problem to warn about on every topic of every such bag.
+        recorded = {k: v for k, v in recorded.items() if k not in ("history", "depth")}
 
     def setting(name, table):
         value = recorded.get(name, default[name])
@@ -81,7 +86,7 @@ def qos_from_recorded(topic: str, profiles) -> QoSProfile:
 
     reliability, durability = setting("reliability", _RELIABILITY), setting("durability", _DURABILITY)
     history, depth = setting("history", _HISTORY), recorded.get("depth", default["depth"])
-    if not (isinstance(depth, int) and not isinstance(depth, bool) and 0 < depth <= MAX_DEPTH):
+    if not (isinstance(depth, int) and not isinstance(depth, bool) and 0 < depth <= MAX_QOS_DEPTH):
         if history == HistoryPolicy.KEEP_LAST:  # keep_all has no use for a depth
             unusable.append(f"depth {depth!r}")
         depth = default["depth"]

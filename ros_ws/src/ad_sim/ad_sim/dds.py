@@ -16,6 +16,7 @@ from pathlib import Path
 from rcl_interfaces.msg import ParameterDescriptor
 
 FAST_HEARTBEAT_PROFILE = Path(__file__).resolve().parent / "data" / "dds" / "fast_heartbeat.xml"
+MAX_QOS_DEPTH = 2**31 - 1  # rclpy refuses a larger history depth (a TypeError from its rmw_qos_profile_t)
 
 
 def use_fast_heartbeat() -> None:

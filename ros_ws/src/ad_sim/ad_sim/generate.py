@@ -136,9 +136,8 @@ def _damage(folder: Path, done: dict) -> str:
                 return f"{name} has {actual} bytes, not the {size} it was written with"
         return ""
     for name, digest in done["sha256"].items():
-        with open(folder / name, "rb") as f:  # streamed: a shard's file can be larger than memory
-            if hashlib.file_digest(f, "sha256").hexdigest() != digest:
-                return f"{name} is not the file it was written as (sha256)"
+        if _file_digest(folder / name) != digest:
+            return f"{name} is not the file it was written as (sha256)"
     try:
         _write_marker(folder, done | {"sizes": _file_sizes(folder)})
     except OSError:  # a read-only copy: checked by sha256 again next time
@@ -164,8 +163,13 @@ def _check_settings(folder: Path, recorded: dict | None, settings: dict) -> None
             f"{folder} was written with other settings ({names}); delete it or choose another --out to write it anew")
 
 
+def _file_digest(path: Path) -> str:
+    with open(path, "rb") as f:  # streamed: a shard's file can be larger than memory
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
 def _file_digests(folder: Path) -> dict[str, str]:
-    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.glob("*.mcap"))}
+    return {p.name: _file_digest(p) for p in sorted(folder.glob("*.mcap"))}
 
 
 def write_episodes(

@@ -37,12 +37,11 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from . import materials, messages
-from .dds import declare_parameters, non_ros_args, number, use_fast_heartbeat
+from .dds import MAX_QOS_DEPTH, declare_parameters, non_ros_args, number, use_fast_heartbeat
 
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
 ACK_SLICE = 0.1  # s between looks at the stop flag while waiting for acknowledgements
-MAX_QOS_DEPTH = 2**31 - 1
 WORKER_JOIN_TIMEOUT = 10.0  # s; a stopped worker ends within one simulated frame, well under this
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
 
