@@ -598,6 +598,12 @@ def test_random_images_give_levels_exactly_when_they_give_a_mask(msg):
     try:
         binary = image_to_mask(msg, 64 * 64)
     except ImageRejected as rejected:
+        if rejected.kind == "empty":  # nothing above the threshold: the levels may still hold faint pixels
+            try:
+                assert image_to_mask(msg, 64 * 64, None).max() <= 127
+            except ImageRejected as again:
+                assert again.kind == "empty"
+            return
         with pytest.raises(ImageRejected) as again:
             image_to_mask(msg, 64 * 64, None)
         assert (again.value.kind, str(again.value)) == (rejected.kind, str(rejected))

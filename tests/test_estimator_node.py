@@ -546,13 +546,47 @@ def test_missing_or_corrupt_model_fails_at_start_naming_the_file(tmp_path, conte
     assert proc.returncode == 1 and str(path) in out and "Traceback" not in out
 
 
-@pytest.mark.parametrize("value", ["0.0", "-1.0", "1e300"])
-def test_a_diagnostics_period_out_of_range_is_refused(model_paths, value, ros_domain_id):
-    """0 would publish /diagnostics in a busy loop, a negative value failed inside rcl, a huge one overflowed."""
-    proc = run_node("-p", f"model_path:={model_paths['streaming']}", "-p", f"diagnostics_period:={value}")
+@pytest.mark.parametrize("parameter, message", [
+    ("diagnostics_period:=0.0", "diagnostics_period is seconds in [0.01, 1e+06], got 0.0"),  # a busy loop
+    ("diagnostics_period:=-1.0", "diagnostics_period is seconds in [0.01, 1e+06], got -1.0"),  # failed in rcl
+    ("diagnostics_period:=1e300", "diagnostics_period is seconds in [0.01, 1e+06], got 1e+300"),  # overflowed
+    ("diagnostics_period:=0.000000001", "diagnostics_period is seconds in [0.01, 1e+06], got 1e-09"),
+    ("threads:=100000", "threads must be at most 256, got 100000"),  # took minutes and 16 GB to load
+    ("input_depth:=9223372036854775807", "input_depth must be at most 1000000, got 9223372036854775807"),
+])
+def test_a_parameter_out_of_range_is_refused(model_paths, parameter, message, ros_domain_id):
+    proc = run_node("-p", f"model_path:={model_paths['streaming']}", "-p", parameter)
     out, _ = proc.communicate(timeout=60)
-    assert proc.returncode == 1 and f"diagnostics_period is seconds in (0, 1e+06], got {float(value)}" in out, out
+    assert proc.returncode == 1 and message in out, out
     assert "Traceback" not in out
+
+
+def test_frames_without_object_or_with_a_malformed_stamp_are_rejected_not_estimated(ros, model_paths):
+    """A 0/1 mask (nothing above mask_threshold 127) gave an estimate of nothing, with confidence; a stamp
+    with nanosec >= 1e9 was read as seconds later. Both are rejected and counted, from the topic and the
+    service, and a good episode afterwards gets its estimate."""
+    t = start(ros, model_paths["streaming"])
+    masks = falling_masks(seed=21)
+    publish_episode(t, [m // 255 for m in masks], 10**9)  # 0/1 masks
+    bad_stamp = image_msg(masks[0], 5 * 10**9)
+    bad_stamp.header.stamp.nanosec = 3_000_000_000
+    t.publisher.publish(bad_stamp)
+    assert wait_for(lambda: t.node.statistics()["rejected"] == 26)
+    stats = t.node.statistics()
+    assert stats["processed"] == 0 and not t.estimates
+    publish_episode(t, masks, 10 * 10**9)
+    assert wait_for(lambda: len(t.estimates) == 1) and t.estimates[0].frames_used == 25
+    client = t.client.create_client(EstimateMaterial, "/ad_estimator/estimate")
+    assert client.wait_for_service(timeout_sec=5)
+    future = client.call_async(EstimateMaterial.Request(frames=[image_msg(m // 255, 0) for m in masks]))
+    assert wait_for(future.done) and not future.result().success
+    assert future.result().message.startswith("frame 0: no object pixel in this mono8 mask above mask_threshold 127 "
+                                              "(its brightest pixel is 1; a 0/1 mask needs mask_threshold 0)")
+    stamped = [image_msg(m, k * DT) for k, m in enumerate(masks)]
+    stamped[3].header.stamp.nanosec = 1_000_000_000
+    future = client.call_async(EstimateMaterial.Request(frames=stamped))
+    assert wait_for(future.done) and not future.result().success
+    assert "stamp nanosec 1000000000 is not below 1e9" in future.result().message
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])

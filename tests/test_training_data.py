@@ -184,7 +184,7 @@ def as_mono16(msg):
 @pytest.mark.parametrize("damage, reason", [
     (lambda msg: {**msg, "encoding": "32FC1"}, "unsupported encoding '32FC1'"),
     (lambda msg: {**msg, "data": bytes(msg["data"])[:100]}, "data length 100 != step 128 * height 128"),
-    (lambda msg: {**msg, "height": 64, "width": 64, "step": 64, "data": bytes(msg["data"])[: 64 * 64]},
+    (lambda msg: {**msg, "height": 64, "width": 64, "step": 64, "data": bytes([255]) * 64 * 64},
      "mask is 64x64, not the simulator's 128x128"),
 ])
 def test_an_unusable_mask_frame_skips_only_its_episode(tmp_path, caplog, damage, reason):

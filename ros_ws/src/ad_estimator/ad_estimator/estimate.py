@@ -85,7 +85,12 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
         if idle_ns > 0 and last_log is not None and log_time - last_log > idle_ns:
             collect(window.flush())  # the node's idle flush: input paused longer than idle_flush
         last_log = log_time
-        stamp = stamp_to_ns(image.header.stamp.sec, image.header.stamp.nanosec)
+        try:
+            stamp = stamp_to_ns(image.header.stamp.sec, image.header.stamp.nanosec)
+        except ValueError as exc:  # as the node rejects it
+            warnings.warn(f"{bag}: frame logged at {log_time / 1e9:.3f} s skipped, as the node rejects it: {exc}")
+            tally["stamp"] += 1
+            continue
         try:
             mask = image_to_mask(image, values["max_image_pixels"], threshold)
         except ImageRejected as exc:

@@ -6,7 +6,7 @@ Pure numpy. Accepted encodings (pixel is "object" when above the threshold):
 - rgb8 / bgr8 / rgba8 / bgra8 / 8UC3 / 8UC4: brightest colour channel > threshold (alpha ignored).
 With threshold None the levels are kept instead (0..255; mono16 scaled down), for models that read
 grey masks, each pixel's area coverage (ad.mask_levels "coverage", docs/architecture.md).
-Anything else is refused. The size check uses only header fields (height, width, step), so an
+Anything else is refused, and so is a mask with no object pixel (kind "empty"). The size check uses only header fields (height, width, step), so an
 oversized or malformed image is refused before any buffer of ours is allocated.
 """
 from __future__ import annotations
@@ -71,5 +71,12 @@ def image_to_mask(msg, max_pixels: int, threshold: int | None = DEFAULT_THRESHOL
         pixels = rows.reshape(height, width, channels)[:, :, : ENCODINGS[encoding][2]].max(axis=2)
         limit = threshold
     if threshold is None:
-        return (pixels // 257).astype(np.uint8) if depth == 2 else np.array(pixels, np.uint8)
-    return (pixels > limit).astype(np.uint8) * np.uint8(255)
+        mask = (pixels // 257).astype(np.uint8) if depth == 2 else np.array(pixels, np.uint8)
+    else:
+        mask = (pixels > limit).astype(np.uint8) * np.uint8(255)
+    if not mask.any():  # no object: an estimate from it would be made of nothing
+        brightest = int(pixels.max())
+        above = "" if threshold is None else f" above mask_threshold {threshold}" + (
+            f" (its brightest pixel is {brightest}; a 0/1 mask needs mask_threshold 0)" if brightest else "")
+        raise ImageRejected("empty", f"no object pixel in this {encoding} mask{above}")
+    return mask

@@ -205,10 +205,13 @@ class EstimatorNode(Node):
         """Convert, place on the window, estimate and publish what is due (the worker's job)."""
         try:
             mask = image_to_mask(msg, self.max_pixels, self.threshold)
+            stamp = stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
         except ImageRejected as exc:
             self._reject(exc)
             return []
-        stamp = stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
+        except ValueError as exc:  # a malformed stamp
+            self._reject(ImageRejected("stamp", str(exc)))
+            return []
         encode_time = [0.0]
 
         def encode(frame, earlier):

@@ -8,6 +8,9 @@ from ad_estimator.window import (DEFAULT_EVERY_N, DEFAULT_GAP_THRESHOLD, DEFAULT
                                  MAX_SECONDS, FrameWindow)
 
 DEFAULT_INPUT_TOPIC = "/ad_sim/view_0/mask"  # the simulator's first camera: what the node reads unless remapped
+MIN_DIAGNOSTICS_PERIOD = 0.01  # s; shorter is a busy loop of /diagnostics
+MAX_THREADS = 256
+MAX_INPUT_DEPTH = 1_000_000  # frames: 40,000 episodes; rclpy itself fails past 2^31 - 1
 DEFAULT_IDLE_FLUSH = 0.3  # s; replayed and simulated streams pause > 0.5 s between episodes, frames 0.025 s apart
 # name -> (default, description); every knob of the node is a ROS parameter.
 PARAMETERS = {
@@ -49,8 +52,12 @@ def check_parameters(values: dict) -> None:
         raise ValueError(f"mask_threshold is a pixel value in 0..254 (of 255), got {values['mask_threshold']}")
     if "idle_flush" in values and not 0 <= values["idle_flush"] <= MAX_SECONDS:
         raise ValueError(f"idle_flush is seconds in 0..{MAX_SECONDS:g} (0: never), got {values['idle_flush']}")
-    if "diagnostics_period" in values and not 0 < values["diagnostics_period"] <= MAX_SECONDS:
-        raise ValueError(f"diagnostics_period is seconds in (0, {MAX_SECONDS:g}], got {values['diagnostics_period']}")
+    if "diagnostics_period" in values and not MIN_DIAGNOSTICS_PERIOD <= values["diagnostics_period"] <= MAX_SECONDS:
+        raise ValueError(f"diagnostics_period is seconds in [{MIN_DIAGNOSTICS_PERIOD:g}, {MAX_SECONDS:g}], got "
+                         f"{values['diagnostics_period']}")
+    for name, most in (("threads", MAX_THREADS), ("input_depth", MAX_INPUT_DEPTH)):
+        if name in values and values[name] > most:  # (threads:=100000 took minutes and 16 GB to load the model)
+            raise ValueError(f"{name} must be at most {most}, got {values[name]}")
 
 
 def model_window(values: dict, info) -> FrameWindow:

@@ -316,6 +316,10 @@ class FrameWindow:
 
 
 def stamp_to_ns(sec: int, nanosec: int) -> int:
+    """builtin_interfaces/Time -> ns; ValueError for a nanosec of a second or more, which is no time (read as
+    is, it shifted the frame by seconds, and near the end of int32 seconds the published stamp wrapped)."""
+    if not 0 <= int(nanosec) < 1_000_000_000:
+        raise ValueError(f"stamp nanosec {nanosec} is not below 1e9 (a malformed header stamp)")
     return int(sec) * 1_000_000_000 + int(nanosec)
 
 
