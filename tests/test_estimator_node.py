@@ -175,6 +175,34 @@ def test_window_restarts_on_backwards_stamps_and_size_change(ros, model_paths, c
     assert t.node.window.stats.restarts[cause] == 1
 
 
+def test_the_stream_is_served_while_a_clip_is_estimated(ros, model_paths):
+    """A clip call that takes long (held here until the stream's estimate arrives) no longer holds up the
+    subscription: it shared the executor's callback group, so a 9 s clip of large frames lost the stream."""
+    import threading
+
+    t = start(ros, model_paths["streaming"])
+    busy, release, estimate_clip = threading.Event(), threading.Event(), t.node.estimate_clip
+
+    def slow_clip(frames):
+        busy.set()
+        release.wait(30)
+        return estimate_clip(frames)
+
+    t.node.estimate_clip = slow_clip
+    client = t.client.create_client(EstimateMaterial, "/ad_estimator/estimate")
+    assert client.wait_for_service(timeout_sec=5)
+    masks = falling_masks(seed=23)
+    future = client.call_async(EstimateMaterial.Request(frames=[image_msg(m, 0) for m in masks]))
+    assert wait_for(busy.is_set)
+    publish_episode(t, masks, 10**9)
+    try:
+        assert wait_for(lambda: len(t.estimates) == 1, timeout=20) and not future.done()
+    finally:
+        release.set()
+    assert wait_for(future.done) and future.result().success
+    assert t.node.statistics()["received"] == 25
+
+
 def test_estimate_service_answers_a_clip(ros, model_paths):
     t = start(ros, model_paths["streaming"])
     client = t.client.create_client(EstimateMaterial, "/ad_estimator/estimate")

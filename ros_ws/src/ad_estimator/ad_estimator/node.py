@@ -27,7 +27,8 @@ from ad_msgs.srv import EstimateMaterial
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
@@ -129,7 +130,10 @@ class EstimatorNode(Node):
             Image, self.input_topic, self.on_image, input_qos,
             event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self.on_incompatible_qos))
         self.create_service(Trigger, "~/reset", self.on_reset)
-        self.create_service(EstimateMaterial, "~/estimate", self.on_estimate)
+        # Its own group: a clip (up to MAX_CLIP_FRAMES large frames) takes seconds, and in the default group,
+        # on a multi-threaded executor, it would hold up the subscription while the stream's frames are lost.
+        self.create_service(EstimateMaterial, "~/estimate", self.on_estimate,
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self.create_timer(p["diagnostics_period"], self.publish_diagnostics)
         self._diag_time = time.monotonic()
         self.worker = threading.Thread(target=self._work, name="ad_estimator_worker", daemon=True)
@@ -451,7 +455,7 @@ def main(args=None) -> int:
     rclpy.init(args=args)
     node = None
     try:
-        executor = SingleThreadedExecutor()
+        executor = MultiThreadedExecutor(num_threads=2)  # the clip service beside the stream's callbacks
         node = EstimatorNode()
         executor.add_node(node)
         executor.spin()
