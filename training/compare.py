@@ -14,8 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ad_estimator.metrics import (json_text, markdown_table, read_frames_json, table_cell, table_columns,
-                                  table_labels)
+from ad_estimator.metrics import json_text, markdown_table, read_frames_json, table_cell, table_fields, table_labels
 from ad_sim.materials import FRAME_COUNT
 
 
@@ -50,12 +49,10 @@ def read_run(path: Path, frames: int, which: str) -> tuple[Path, dict[str, float
         raise ValueError(f"{file} has no entry for {frames} frames (it has {', '.join(metrics['frames'])}); choose "
                          "one of those with --frames")
     entry = metrics["frames"][str(frames)]
-    # Walked here, not by table_values, so that whatever is missing or not a number is named by its field
+    # table_values' fields walked here, so that whatever is missing or not a number is named by its field
     # (table_values' KeyError or TypeError text named none: "lack list indices must be integers ...").
     cells = {}
-    paths = [["families", family, "acc"] if name is None else ["families", family, which, name]
-             for family, _, name in table_columns()] + [["regl1"]]  # table_values' fields, in table_labels' order
-    for keys, label in zip(paths, table_labels()):
+    for keys, label in zip(table_fields(which), table_labels()):
         value, field = entry, f'"frames"["{frames}"]'
         for key in keys:
             if not isinstance(value, dict):

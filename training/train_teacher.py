@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -12,7 +11,7 @@ from torch.utils.data import Dataset as TorchDataset
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
-from ad_estimator.cli import count, fraction, positive, torch_device_or_auto
+from ad_estimator.cli import count, fraction, non_negative_number, positive, positive_number, torch_device_or_auto
 from ad_estimator.metrics import Predictions
 from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
 from training import data
@@ -150,19 +149,6 @@ def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: 
     return Predictions(ds.labels, ds.params_si, np.concatenate(probs), si, list(ds.episode_ids))
 
 
-def _number(above: bool):
-    """argparse type: a finite number > 0 (`above`) or >= 0."""
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
-        if not (math.isfinite(value) and (value > 0 if above else value >= 0)):
-            raise argparse.ArgumentTypeError(f"expected a number {'>' if above else '>='} 0, got {text!r}")
-        return value
-    return parse
-
-
 def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr: float = 1e-4) -> None:
     p.add_argument("--bags", required=True, help="folder of training .mcap bags (searched recursively)")
     p.add_argument("--cache", default=".cache/training", help="array cache folder (keyed by bag content)")
@@ -173,10 +159,10 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
     p.add_argument("--epochs", type=positive, default=epochs, help=f"epochs (default {epochs}; paper values in SPEC 9)")
     p.add_argument("--batch-size", type=positive, default=batch_size, help="per-process batch size")
     # Checked here, before anything is written: AdamW refuses them only once the data has loaded.
-    p.add_argument("--lr", type=_number(above=True), default=lr, help="AdamW peak learning rate (cosine to --min-lr)")
-    p.add_argument("--min-lr", type=_number(above=False), default=1e-6,
+    p.add_argument("--lr", type=positive_number, default=lr, help="AdamW peak learning rate (cosine to --min-lr)")
+    p.add_argument("--min-lr", type=non_negative_number, default=1e-6,
                    help="floor of the cosine schedule (approached over the last steps)")
-    p.add_argument("--weight-decay", type=_number(above=False), default=1e-4, help="AdamW weight decay")
+    p.add_argument("--weight-decay", type=non_negative_number, default=1e-4, help="AdamW weight decay")
     p.add_argument("--val-fraction", type=fraction, default=0.1, help="instances held out for validation")
     p.add_argument("--seed", type=int, default=0,
                    help="seeds initialisation, the validation split (--val-fraction), batch order, "

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import math
 import os
 import shutil
 import sys
@@ -23,6 +24,27 @@ def positive(text: str) -> int:
     if not text.isdigit() or int(text) < 1:
         raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
     return int(text)
+
+
+def _finite(text: str) -> float:
+    try:
+        return float(text) if math.isfinite(float(text)) else math.nan
+    except ValueError:
+        return math.nan
+
+
+def positive_number(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    if not _finite(text) > 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return float(text)
+
+
+def non_negative_number(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    if not _finite(text) >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return float(text)
 
 
 def fraction(text: str) -> float:

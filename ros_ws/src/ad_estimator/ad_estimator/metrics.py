@@ -12,6 +12,7 @@ The full-clip report also says where the errors lie along each parameter's range
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 from dataclasses import dataclass, field
@@ -337,12 +338,16 @@ def table_labels() -> list[str]:
     return [label for _, label, _ in table_columns()] + ["RegL1"]
 
 
+def table_fields(which: str = "correct") -> list[tuple[str, ...]]:
+    """Where each of table_labels()' values sits in a metrics entry (one number of frames), as keys."""
+    return [("families", family, "acc") if name is None else ("families", family, which, name)
+            for family, _, name in table_columns()] + [("regl1",)]
+
+
 def table_values(entry: dict, which: str = "correct") -> list[float | None]:
     """One metrics entry's (one number of frames) values in table_labels() order; None where a
     metrics.json read back has null."""
-    families = entry["families"]
-    return [families[family]["acc"] if name is None else families[family][which][name]
-            for family, _, name in table_columns()] + [entry["regl1"]]
+    return [functools.reduce(lambda value, key: value[key], keys, entry) for keys in table_fields(which)]
 
 
 def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
