@@ -2,6 +2,7 @@
 import signal
 import subprocess
 import sys
+import threading
 import time
 import types
 from pathlib import Path
@@ -161,6 +162,34 @@ def test_reset_service_restarts_the_window(ros, model_paths):
     publish_episode(t, masks, 10 * DT)  # stamps continue without a gap: only the reset restarts
     assert wait_for(lambda: len(t.estimates) >= 1)
     assert stamp_ns(t.estimates[0].oldest_stamp) == 10 * DT and t.estimates[0].frames_used == 25
+
+
+def test_reset_counts_the_queued_frames_it_discards(ros, model_paths):
+    """Frames waiting in the queue when ~/reset comes belong to the old episode: they are discarded, and
+    counted (they were counted nowhere, so received no longer added up)."""
+    t = start(ros, model_paths["streaming"], diagnostics_period=0.2)
+    arrays = []
+    t.client.create_subscription(DiagnosticArray, "/diagnostics", arrays.append, 10)
+    release, encode = threading.Event(), t.node.model.encode
+
+    def held_encode(*args):  # the worker holds the first frame, so the next ones wait in the queue
+        release.wait(timeout=30)
+        return encode(*args)
+
+    t.node.model.encode = held_encode
+    publish_episode(t, falling_masks(seed=5)[:7], 0)
+    assert wait_for(lambda: t.node.statistics()["received"] == 7 and t.node.queue.qsize() == 6)
+    reset = t.client.create_client(Trigger, "/ad_estimator/reset")
+    assert reset.wait_for_service(timeout_sec=5)
+    future = reset.call_async(Trigger.Request())
+    assert wait_for(future.done) and future.result().success
+    assert "6 queued frame(s) discarded" in future.result().message
+    release.set()
+    assert wait_for(lambda: t.node.statistics()["processed"] == 1)
+    stats = t.node.statistics()
+    assert stats["cleared_by_reset"] == 6 and stats["received"] == stats["processed"] + stats["cleared_by_reset"]
+    assert wait_for(lambda: any({kv.key: kv.value for kv in a.status[0].values}.get("frames_cleared_by_reset") == "6"
+                                for a in arrays))
 
 
 @pytest.mark.parametrize("cause", ["backwards", "size"])

@@ -107,7 +107,8 @@ class EstimatorNode(Node):
 
         self.queue: queue.Queue = queue.Queue(maxsize=p["queue_size"])
         self.counters = dict(received=0, rejected=0, dropped=0, late=0, duplicate=0, processed=0, published=0,
-                             errors=0, without_estimate=0, off_framing=0, incompatible_publishers=0)
+                             errors=0, without_estimate=0, off_framing=0, incompatible_publishers=0,
+                             cleared_by_reset=0)
         self.latencies: deque[float] = deque(maxlen=1000)  # arrival -> publish, seconds
         self.model_times: deque[float] = deque(maxlen=1000)
         self._period_counts = dict(received=0, published=0, dropped=0, rejected=0, late=0, duplicate=0, errors=0,
@@ -289,6 +290,9 @@ class EstimatorNode(Node):
                     for out in self.window.flush():
                         self._guarded(self._publish, out, frame_id, None, 0.0)
                 continue
+            if generation != self._generation:  # queued as ~/reset cleared the queue: it belongs to the old window
+                self._count("cleared_by_reset")
+                continue
             self._sync_reset(generation)
             self._last_frame_time = time.monotonic()
             frame_id = msg.header.frame_id
@@ -312,10 +316,14 @@ class EstimatorNode(Node):
 
     def on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self.queue.mutex:  # frames that arrived before the reset belong to the old window
+            cleared = len(self.queue.queue)
             self.queue.queue.clear()
             self._generation += 1
+        with self._lock:
+            self.counters["cleared_by_reset"] += cleared
         response.success = True
-        response.message = "window reset: the next frame starts a new episode"
+        response.message = (f"window reset: {cleared} queued frame(s) discarded; "
+                            "the next frame starts a new episode")
         return response
 
     def on_estimate(self, request: EstimateMaterial.Request,
@@ -410,7 +418,8 @@ class EstimatorNode(Node):
             "model_time_p50_ms": f"{stats['model_time_p50_ms']:.3f}",
             "frames_received": str(stats["received"]), "frames_rejected": str(stats["rejected"]),
             "frames_dropped": str(stats["dropped"]), "frames_late": str(stats["late"]),
-            "frames_duplicate": str(stats["duplicate"]), "estimates_published": str(stats["published"]),
+            "frames_duplicate": str(stats["duplicate"]), "frames_cleared_by_reset": str(stats["cleared_by_reset"]),
+            "estimates_published": str(stats["published"]),
             "processing_errors": str(stats["errors"]), "queue_depth": str(stats["queue_depth"]),
             "episodes_without_estimate": str(stats["without_estimate"]),
             "episodes_off_framing": str(stats["off_framing"]),
