@@ -181,3 +181,22 @@ def test_a_run_without_regl1_and_an_unwritable_out_are_clear(tmp_path, capsys):
     assert main(["compare", "--group", f"A={lacking}", "--out", str(blocked)]) == 1
     err = capsys.readouterr().err.strip()
     assert str(blocked) in err and len(err.splitlines()) == 1
+
+
+def test_a_report_that_cannot_be_written_leaves_the_earlier_one_whole(tmp_path):
+    """The report is written in a staging folder and moved in once complete: under a file size limit that
+    stops it at the plot, the earlier report's files are all as they were, and nothing is left over."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    groups = ["--group", f"A={_metrics(tmp_path / 'a.json', 0.15)}", "--group", f"B={_metrics(tmp_path / 'b.json', 0.16)}"]
+    assert main(["compare", *groups, "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert sorted(before) == ["compare.json", "compare.md", "compare.png"] and len(before["compare.png"]) > 8000
+    code = ("import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (8000, 8000)); "
+            "from training.__main__ import main; sys.exit(main(sys.argv[1:]))")
+    proc = subprocess.run([sys.executable, "-c", code, "compare", *groups, "--title", "another", "--out", str(out)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and f"--out {out}: cannot write the report there" in proc.stderr, proc.stderr
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before

@@ -87,6 +87,31 @@ def test_training_evaluate_reports_calibration_too(setup, tmp_path, capsys):
     assert "## Uncertainty calibration (25 frames)" in (tmp_path / "out" / "report.md").read_text()
 
 
+def test_training_evaluate_that_cannot_write_leaves_the_earlier_report_whole(setup, tmp_path):
+    """`python -m training evaluate` and `report` write their reports in a staging folder, moved in once
+    complete: under a file size limit that stops them at the plots, the earlier report is as it was."""
+    import subprocess
+    import sys
+
+    from training import evaluate as training_evaluate
+    from training.synthetic import write_synthetic_bag
+
+    model, _ = setup
+    bags, out = tmp_path / "bags" / "unseen", tmp_path / "out"
+    write_synthetic_bag(bags / "unseen-0of1", 3, views=1, seed=12, split="unseen")
+    training_evaluate.evaluate_model(model, bags, tmp_path / "cache", out, progress=False, record=False)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert {"report.md", "metrics.json", "predictions.json", "pred_vs_true.png"} <= set(before)
+    limit = ("import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000)); "
+             "from training.__main__ import main; sys.exit(main(sys.argv[1:]))")
+    for command in (["evaluate", "--model", str(model), "--bags", str(bags), "--cache", str(tmp_path / "cache"),
+                     "--no-record", "--no-progress"], ["report", "--predictions", str(out / "predictions.json")]):
+        proc = subprocess.run([sys.executable, "-c", limit, *command, "--title", "another", "--out", str(out)],
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 1 and "File too large" in proc.stderr, proc.stderr
+        assert {p.name: p.read_bytes() for p in out.iterdir()} == before, command[0]
+
+
 def test_frames_take_spaces_or_commas(setup, tmp_path, capsys):
     """`--frames 22,18 15` is the same as `--frames 22 18 15`: both evaluators read both forms."""
     model, bag = setup

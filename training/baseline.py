@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ad_estimator.cli import write_text_staged
 from ad_estimator.metrics import Predictions, compute_metrics, format_table, json_text
 from ad_sim.instances import Instance, benchmark
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, PARAMETER_NAMES, SAMPLED_PARAMETERS
@@ -228,8 +229,7 @@ def run(args) -> dict:
     result["fits"] = [{**asdict(fit), "psnr": fit.psnr,
                        "true_parameters": {n: inst.parameters[n] for n in SAMPLED_PARAMETERS[inst.material]}}
                       for inst, fit in zip(instances, fits)]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json_text(result))  # strict JSON: NaN (no instance of a family) becomes null
+    write_text_staged(out, json_text(result))  # strict JSON: NaN (no instance of a family) becomes null
     print(format_table({str(observed.shape[1]): result["metrics"]}, f"per-scene CMA-ES baseline on {name}"))
     print(format_psnr(result["psnr"], len(fits)))
     print(f"{result['seconds_per_instance']:.2f} s per instance ({len(fits)} instances, {args.generations} x "

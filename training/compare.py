@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ad_estimator.cli import staged
 from ad_estimator.metrics import json_text, markdown_table, read_frames_json, table_cell, table_fields, table_labels
 from ad_sim.materials import FRAME_COUNT
 
@@ -132,10 +133,10 @@ def compare(groups: dict[str, list[Path]], out: str | Path, frames: int = FRAME_
 
     out = Path(out)
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "compare.md").write_text("\n".join(md))
-        (out / "compare.json").write_text(json_text(result))
-        plot_regl1(regl1, out / "compare.png", f"RegL1 ({frames} frames)", title)
+        with staged(out) as folder:  # a failure half way leaves an earlier report whole
+            (folder / "compare.md").write_text("\n".join(md))
+            (folder / "compare.json").write_text(json_text(result))
+            plot_regl1(regl1, folder / "compare.png", f"RegL1 ({frames} frames)", title)
     except OSError as exc:
         raise ValueError(f"--out {out}: cannot write the report there ({exc.strerror or exc}); pass a folder you can "
                          "write to") from None

@@ -21,6 +21,8 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, DistributedSampler
 from tqdm import tqdm
 
+from ad_estimator.cli import write_text_staged
+
 LAST = "last.pt"
 BEST = "best.pt"
 
@@ -403,7 +405,7 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
             save_checkpoint(last, {"model": raw.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch,
                                    "step": step, "rng": rng_state(), "history": history, "best": best,
                                    "recipe": recipe or {}, "meta": meta})
-            (out_dir / "history.json").write_text(json.dumps(history, indent=1))
+            write_text_staged(out_dir / "history.json", json.dumps(history, indent=1))
             tqdm.write(f"{desc} " + " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                              for k, v in record.items()))
         if rt.world > 1:

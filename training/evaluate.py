@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ad_estimator.cli import positive, staged, write_text_staged
 from ad_estimator.metrics import (PARAMETER_NAMES, TEMPORAL_OOD_FRAMES, FrameCounts, Predictions, format_table,
                                   in_metric_order, json_text, read_frames_json, write_report)
 from ad_estimator.model import EstimatorModel
@@ -52,10 +53,11 @@ def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORE
 def write_evaluation(by_frames: dict[int, Predictions], out: str | Path, title: str, source: dict) -> dict:
     """The report (metrics.json, report.md, plots) and the per-episode predictions.json, headed by
     `source` (what was evaluated), into `out`; returns the metrics."""
-    results = write_report(by_frames, out, title)
-    (Path(out) / "predictions.json").write_text(json_text(
-        {**source, "parameter_names": list(PARAMETER_NAMES),
-         "frames": {str(k): p.episodes() for k, p in by_frames.items()}}, indent=None))  # compact: 10 prefix lengths
+    with staged(Path(out)) as folder:  # a failure half way leaves an earlier report whole
+        results = write_report(by_frames, folder, title)
+        (folder / "predictions.json").write_text(json_text(
+            {**source, "parameter_names": list(PARAMETER_NAMES),
+             "frames": {str(k): p.episodes() for k, p in by_frames.items()}}, indent=None))  # compact: 10 lengths
     return results
 
 
@@ -103,7 +105,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--cache", default=".cache/training", help="array cache folder")
     p.add_argument("--out", help="report folder (default: <model>_eval next to the model)")
     p.add_argument("--title", help="report title")
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--threads", type=positive, default=1,
                    help="onnxruntime threads (clip models re-read every frame per estimate: give them cores)")
     p.add_argument("--frames", action=FrameCounts, nargs="*", metavar="K",
                    help=f"prefix lengths to score, e.g. --frames 20 15 or --frames 20,15 (default, also with no "
@@ -167,7 +169,8 @@ def run_report(args) -> dict:
     source = saved.get("model_id") or saved.get("teacher")
     title = args.title or (f"{source} ({args.predictions})" if source else str(args.predictions))
     try:
-        results = write_report(by_frames, args.out, title)
+        with staged(Path(args.out)) as folder:
+            results = write_report(by_frames, folder, title)
     except OSError as exc:
         raise ValueError(f"cannot write the report to {args.out} ({exc.strerror or exc}); pass another --out") from None
     print_results(results, title, args.out, predictions=False)
@@ -204,7 +207,7 @@ def update_model_metrics(model_path: str | Path, update: dict) -> Path:
             current[key].update(value)
         else:
             current[key] = value
-    path.write_text(json_text(current))
+    write_text_staged(path, json_text(current))
     return path
 
 

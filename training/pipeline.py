@@ -12,7 +12,7 @@ import time
 from argparse import Namespace
 from pathlib import Path
 
-from ad_estimator.cli import count, fraction, positive, staged, torch_device_or_auto
+from ad_estimator.cli import count, fraction, positive, staged, torch_device_or_auto, write_text_staged
 from ad_estimator.metrics import compute_metrics, format_table, json_text
 from ad_sim.materials import FRAME_COUNT
 from training import data, evaluate, export, train_student, train_teacher
@@ -129,7 +129,7 @@ def run(args) -> dict:
             installed = (onnx_path, metrics_path)
     timings["total_s"] = time.time() - started
     summary["timings"] = timings
-    (out / "summary.json").write_text(json_text(summary))
+    write_text_staged(out / "summary.json", json_text(summary))
     if args.install and installed:
         install(installed[0], installed[1], Path(args.install))
     print(json_text(summary))

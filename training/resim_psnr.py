@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ad_estimator.cli import write_text_staged
 from ad_estimator.metrics import json_text
 from ad_sim.instances import Instance
 from ad_sim.materials import FAMILIES, FRAME_COUNT, SAMPLED_PARAMETERS, full_parameters
@@ -164,8 +165,7 @@ def run(args) -> dict:
     check_json_out(Path(args.out or f"runs/resim_psnr/<model id>-{Path(args.bags).name}.json"))
     result = model_psnr(args.model, args.bags, args.device, args.instances, args.seed, not args.no_progress)
     out = Path(args.out or f"runs/resim_psnr/{result['model_id']}-{Path(args.bags).name}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json_text(result))  # strict JSON: NaN (no instance of a family) becomes null
+    write_text_staged(out, json_text(result))  # strict JSON: NaN (no instance of a family) becomes null
     print(format_table({str(FRAME_COUNT): result["metrics"]}, f"{result['model_id']} on {args.bags}"))
     print(format_psnr(result["psnr"], len(result["episodes"])))
     print(f"wrote {out}")

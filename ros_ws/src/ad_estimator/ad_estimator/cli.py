@@ -102,6 +102,13 @@ def staged(folder: Path, last: str | None = None):
         shutil.rmtree(staging, ignore_errors=True)
 
 
+def write_text_staged(path: Path, text: str) -> None:
+    """path.write_text(text) through `staged`: a failed or killed write leaves the earlier file whole."""
+    path = Path(path)
+    with staged(path.parent) as folder:
+        (folder / path.name).write_text(text)
+
+
 def interruptible(prog: str):
     """Decorates a tool's main(argv) -> int: a Ctrl-C ends it with one line and status 130 instead of a
     traceback. For tools that write their output only at the end, through staged, so nothing is half written."""
