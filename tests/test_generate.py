@@ -73,16 +73,17 @@ def no_simulation(monkeypatch):
     (["--batch", "-1"], "--batch must be >= 1, got -1"), (["--batch", "0"], "--batch must be >= 1, got 0"),
     (["--seed", "-1"], "--seed must be >= 0, got -1"),
     (["--max-bag-size", "-5"], "--max-bag-size must be >= 0, got -5"),
+    (["--max-bag-size", "1000"], "--max-bag-size must be 0 (no split) or >= 65536 bytes, got 1000"),
     (["--name", "x/../../escaped"], "--name must be a plain folder name (no / or ..), got 'x/../../escaped'"),
     (["--name", ".."], "--name must be a plain folder name"),
     (["--limit", "2", "--shards", "3"], "--shards 3: 2 instance(s) leave shard 2 of 3 empty; use at most 2 shards"),
     (["--limit", "2", "--shard", "2/3"], "--shard 2/3: 2 instance(s) leave shard 2 of 3 empty"),
     (["--instances", "BINARY"], "BINARY: not UTF-8 text ("),
-], ids=["batch-negative", "batch-0", "seed", "max-bag-size", "name-escapes", "name-dotdot", "shards", "shard", "utf-8"])
+], ids=["batch-negative", "batch-0", "seed", "max-bag-size", "max-bag-size-small", "name-escapes", "name-dotdot", "shards", "shard", "utf-8"])
 def test_numeric_name_and_shard_count_errors_name_the_option(bad, said, tmp_path, capsys):
     """--batch -1 once wrote an empty shard marked done (0 was the default), --shards above the instances
     an empty bag marked done, --name x/../.. wrote outside --out; --seed -1 failed in NumPy without naming
-    --seed, --max-bag-size -5 after start-up with exit 1; a non-UTF-8 instance file was not named."""
+    --seed, --max-bag-size -5 or 1000 after start-up with exit 1; a non-UTF-8 instance file was not named."""
     binary = tmp_path / "binary.json"
     binary.write_bytes(b"\xff\xfe[]")
     bad, said = [str(binary) if arg == "BINARY" else arg for arg in bad], said.replace("BINARY", str(binary))

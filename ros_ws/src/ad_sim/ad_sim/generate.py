@@ -20,7 +20,7 @@ from pathlib import Path
 
 # ad_sim.messages (and through it Warp and SciPy, a second of imports) is imported where it is used, so
 # that a Ctrl-C right after start lands in main's handler (one line, exit 130) instead of a traceback.
-from .rosbag import METADATA_FILE, BagError, BagWriter, qos_profile
+from .rosbag import METADATA_FILE, MIN_SPLIT_SIZE, BagError, BagWriter, qos_profile
 
 DONE_MARKER = "DONE"
 DONE_PARTIAL = "DONE.tmp"  # the marker while it is written (renamed to DONE_MARKER)
@@ -262,7 +262,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--views", type=int, help="cameras per episode (default: 4 for train, 1 otherwise)")
     parser.add_argument("--batch", type=int, help="episodes per simulator batch (default: " + ", ".join(f"{n} on {d}" for d, n in DEFAULT_BATCH.items()) + ")")
     parser.add_argument("--limit", type=int, help="use only the first n instances (quick looks)")
-    parser.add_argument("--max-bag-size", type=int, default=0, help="split .mcap files at this many bytes (0: never)")
+    parser.add_argument("--max-bag-size", type=int, default=0, help=f"split .mcap files at this many bytes (0: never; else >= {MIN_SPLIT_SIZE})")
     parser.add_argument("--compression", default="zstd", choices=("zstd", "lz4", "none"), help="chunk compression (default %(default)s)")
     parser.add_argument(
         "--skip-particles", action="store_true", help="leave out /ad_sim/particles (60 KB a frame, hardly compressible): masks-only bags"
@@ -298,6 +298,8 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
     for option, value, least in (("--batch", args.batch, 1), ("--seed", args.seed, 0), ("--max-bag-size", args.max_bag_size, 0)):
         if value is not None and value < least:
             parser.error(f"{option} must be >= {least}, got {value}")
+    if 0 < args.max_bag_size < MIN_SPLIT_SIZE:  # the bag writer refused it too, but only after Warp's start-up
+        parser.error(f"--max-bag-size must be 0 (no split) or >= {MIN_SPLIT_SIZE} bytes, got {args.max_bag_size}")
     if args.name is not None and not plain_name(args.name):  # it could write (and delete) outside --out
         parser.error(f"--name must be a plain folder name (no / or ..), got {args.name!r}")
     if args.list_shapes:

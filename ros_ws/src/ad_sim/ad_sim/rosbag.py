@@ -62,6 +62,7 @@ _PRIMITIVE_TYPES = frozenset(
 )
 # Field types in a .msg text ("pkg/Type" in "pkg/Type[] name"), as rosbag2 finds them.
 _MSG_FIELD_TYPE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+")
+MIN_SPLIT_SIZE = 64 * 1024  # smallest max_bag_size: a split file holds at least one chunk's worth
 
 
 class BagError(ValueError):
@@ -315,8 +316,8 @@ class BagWriter:
         compressions = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
         if compression not in compressions:
             raise BagError(f"unknown compression {compression!r}; use one of {sorted(compressions)}")
-        if max_bag_size and max_bag_size < 64 * 1024:
-            raise BagError(f"max_bag_size {max_bag_size} is too small; use 0 (no split) or >= 65536 bytes")
+        if max_bag_size and max_bag_size < MIN_SPLIT_SIZE:
+            raise BagError(f"max_bag_size {max_bag_size} is too small; use 0 (no split) or >= {MIN_SPLIT_SIZE} bytes")
         self.path.mkdir(parents=True, exist_ok=True)
         self.max_bag_size = int(max_bag_size)
         self.chunk_size = int(chunk_size)
