@@ -171,13 +171,21 @@ def test_the_nodes_window_and_image_parameters_apply(setup, tmp_path):
     assert run(model, bag, "--topic", CAMERA, "--out", tmp_path / "full.csv") == 0
     assert read_csv(tmp_path / "dim.csv")[0]["p_jelly"] == read_csv(tmp_path / "full.csv")[0]["p_jelly"]
     # At the default threshold they hold no object pixel: rejected, saying why (they gave an estimate of nothing).
-    with pytest.warns(UserWarning, match=r"no object pixel in this mono8 mask above mask_threshold 127 \(its "
-                                         r"brightest pixel is 100; a 0/1 mask needs mask_threshold 0\)"):
+    with pytest.warns(UserWarning) as caught:
         assert run(model, dim, "--topic", CAMERA, "--out", tmp_path / "empty.csv") == 1
+    assert [str(w.message).split(": ", 1)[1] for w in caught] == [
+        "frame stamped 5.000 s skipped, as the node rejects it: no object pixel in this mono8 mask above "
+        "mask_threshold 127 (its brightest pixel is 100; a 0/1 mask needs mask_threshold 0)",
+        "25 frames in all skipped for the reason of the first (empty)"]
     assert not (tmp_path / "empty.csv").exists()
-    # Too large for max_image_pixels: every frame is rejected, and the error says none was accepted.
-    with pytest.warns(UserWarning, match="exceeds max_image_pixels"):
+    # Too large for max_image_pixels: every frame is rejected, and the error says none was accepted. The
+    # first is warned about, then the count: one warning per frame flooded the terminal.
+    with pytest.warns(UserWarning) as caught:
         assert run(model, bag, "--topic", CAMERA, "--max-image-pixels", "100", "--out", tmp_path / "x.csv") == 1
+    said = [str(w.message) for w in caught]
+    frames = sum(1 for _ in estimate.mask_frames(bag, CAMERA, recover=False))
+    assert frames > 25 and sum("exceeds max_image_pixels" in text for text in said) == 1, said
+    assert sum(f"{frames} frames in all skipped for the reason of the first (too_large)" in text for text in said) == 1, said
 
 
 def test_a_frame_the_node_rejects_is_skipped_warned_and_counted(setup, tmp_path, capsys):

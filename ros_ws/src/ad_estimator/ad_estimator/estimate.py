@@ -65,7 +65,8 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
                  tally: Counter | None = None) -> list[Row]:
     """Every estimate the node would publish for the bag's `topic`, in order, with the node's
     parameter `values` (PARAMETERS names). `tally` counts the frames read ("frames") and those
-    rejected, by reason; each rejection is also warned about."""
+    rejected, by reason; the first rejection of each reason is warned about, and how many there were in
+    all at the end of the bag (one warning per frame flooded the terminal for a bag of thousands)."""
     window = model_window(values, model.info)
     threshold = model.info.input_threshold(values["mask_threshold"])  # as the node
     idle_ns = int(values["idle_flush"] * 1e9)
@@ -79,6 +80,13 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
             except ValueError as exc:  # outputs that are not finite: no row, as the node publishes none
                 warnings.warn(f"{bag}: episode {out.episode}: no estimate: {exc}")
 
+    rejected: Counter = Counter()
+
+    def reject(kind: str, where: str, exc: Exception) -> None:
+        rejected[kind] += 1
+        if rejected[kind] == 1:
+            warnings.warn(f"{bag}: frame {where} skipped, as the node rejects it: {exc}")
+
     last_log = None
     for log_time, image in mask_frames(bag, topic, recover):
         tally["frames"] += 1
@@ -88,17 +96,19 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
         try:
             stamp = stamp_to_ns(image.header.stamp.sec, image.header.stamp.nanosec)
         except ValueError as exc:  # as the node rejects it
-            warnings.warn(f"{bag}: frame logged at {log_time / 1e9:.3f} s skipped, as the node rejects it: {exc}")
-            tally["stamp"] += 1
+            reject("stamp", f"logged at {log_time / 1e9:.3f} s", exc)
             continue
         try:
             mask = image_to_mask(image, values["max_image_pixels"], threshold)
         except ImageRejected as exc:
-            warnings.warn(f"{bag}: frame stamped {stamp / 1e9:.3f} s skipped, as the node rejects it: {exc}")
-            tally[exc.kind] += 1
+            reject(exc.kind, f"stamped {stamp / 1e9:.3f} s", exc)
             continue
         collect(window.add(stamp, mask, model.encode))
     collect(window.flush())
+    tally.update(rejected)
+    for kind, count in rejected.items():
+        if count > 1:
+            warnings.warn(f"{bag}: {count} frames in all skipped for the reason of the first ({kind})")
     for kind, count, why in (("late", window.stats.late, "came after a later-stamped frame"),
                              ("repeated stamp", window.stats.duplicates, "had the stamp of the frame before")):
         if count:  # skipped by the window, as the node skips them
@@ -190,13 +200,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"estimate: {exc}", file=sys.stderr)
         return 1
     rows, failed, damaged = [], [], False
-    for bag in tqdm(bags, desc="bags", unit="bag", disable=args.quiet):
-        try:
-            rows += estimate_bag(model, bag, args.topic, values, args.recover, tally)
-        except BagError as exc:  # the other bags are still worth their estimates
-            warnings.warn(f"bag skipped: {exc}")
-            failed.append(str(bag))
-            damaged |= isinstance(exc, BagDamaged)
+    # A context manager closes the bar (ending its line) before a Ctrl-C's message is printed.
+    with tqdm(bags, desc="bags", unit="bag", disable=args.quiet) as bar:
+        for bag in bar:
+            try:
+                rows += estimate_bag(model, bag, args.topic, values, args.recover, tally)
+            except BagError as exc:  # the other bags are still worth their estimates
+                warnings.warn(f"bag skipped: {exc}")
+                failed.append(str(bag))
+                damaged |= isinstance(exc, BagDamaged)
     frames = tally.pop("frames", 0)
     problems = "".join([f"; {sum(tally.values())} frame(s) skipped ({dict(tally)})" if tally else "",
                         f"; {len(failed)} bag(s) could not be read: {', '.join(failed)}" if failed else ""])
