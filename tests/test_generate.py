@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import os
 import signal
 import subprocess
@@ -263,6 +264,28 @@ def test_a_damaged_done_shard_is_redone_with_a_warning(tmp_path, capsys):
     assert rerun() == [f"warning: {shard} is damaged (unseen-0of1_0.mcap is not the file it was written as "
                        "(sha256)), so it is redone"]
     assert main(args) == 0 and capsys.readouterr().err == f"{shard}: already done, skipped\n"
+
+
+@pytest.mark.ros
+def test_a_later_shard_that_would_be_refused_is_refused_before_any_simulation(tmp_path, monkeypatch, capsys):
+    """A finished shard written with other settings, or damaged and holding a user's file, was refused only
+    when its turn came, after the shards before it had been simulated (hours, at full scale)."""
+    args = ["--quiet", "--size", "tiny", "--split", "unseen", "--skip-particles", "--limit", "2", "--shards", "2",
+            "--out", str(tmp_path)]
+    assert main(args) == 0
+    first, second = tmp_path / "unseen-0of2", tmp_path / "unseen-1of2"
+    shutil.rmtree(first)
+    before = digests(second)
+    no_simulation(monkeypatch)
+    capsys.readouterr()
+    assert main([*args, "--compression", "lz4"]) == 1
+    assert f"{second} was written with other settings (compression)" in capsys.readouterr().err
+    (second / "unseen-1of2_0.mcap").unlink()
+    (second / "notes.txt").write_text("mine")
+    assert main(args) == 1
+    assert f"error: {second} would be redone, but it holds files generate does not write (notes.txt)" in \
+        capsys.readouterr().err
+    assert not first.exists() and (second / "notes.txt").read_text() == "mine" and digests(second) == before
 
 
 def shard_masks(shard):

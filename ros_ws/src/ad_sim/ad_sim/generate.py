@@ -190,7 +190,25 @@ def write_episodes(
             writer.write(topic, stamp, message)
 
 
-def generate_shard(
+def shard_to_write(folder: Path, settings: dict) -> bool:
+    """Whether shard `folder` is to be (re)written for `settings` (shard_settings); False if it is finished
+    with them. Raises ShardMismatch if it was finished with others, ForeignFiles if it is to be (re)written
+    but holds files generate does not write. Warns about a damaged shard or marker, which is redone."""
+    if is_done(folder) and (done := _read_marker(folder)) is not None:
+        if done.get("settings") is not None:  # other settings: refused even if damaged (redoing would change them)
+            _check_settings(folder, done["settings"], settings)
+        if damage := _damage(folder, done):
+            check_replaceable(folder)  # before saying it is redone
+            print(f"warning: {folder} is damaged ({damage}), so it is redone", file=sys.stderr)
+            return True
+        if done.get("settings") is None:
+            _check_settings(folder, None, settings)
+        return False
+    check_replaceable(folder)
+    return True
+
+
+def write_shard(
     instances: list,
     folder: Path,
     *,
@@ -203,28 +221,15 @@ def generate_shard(
     skip: frozenset[str] = frozenset(),
     progress: bool = True,
     coverage_masks: bool = False,
-) -> bool:
-    """Simulate `instances` and write them as one bag folder; False if it was already done with the
-    same settings. Raises ShardMismatch if it was done with others, ForeignFiles if it is to be (re)done but
-    holds files generate does not write. coverage_masks: mask pixels hold their area coverage (0..255)
+) -> None:
+    """Simulate `instances` and write them as one bag folder, replacing what shard_to_write found there,
+    with a DONE marker recording its shard_settings. coverage_masks: mask pixels hold their area coverage (0..255)
     instead of 0/255 (episode.simulate_batch)."""
     from tqdm import tqdm
 
     from .episode import simulate_batch
 
-    settings = shard_settings(instances, views, skip, compression, max_bag_size, coverage_masks)
-    if is_done(folder) and (done := _read_marker(folder)) is not None:
-        if done.get("settings") is not None:  # other settings: refused even if damaged (redoing would change them)
-            _check_settings(folder, done["settings"], settings)
-        if damage := _damage(folder, done):
-            check_replaceable(folder)  # before saying it is redone
-            print(f"warning: {folder} is damaged ({damage}), so it is redone", file=sys.stderr)
-        else:
-            if done.get("settings") is None:
-                _check_settings(folder, None, settings)
-            return False
-    check_replaceable(folder)  # deletes only a shard of generate's own (a killed run's, or damaged)
-    if folder.exists():
+    if folder.exists():  # shard_to_write checked it holds only generate's own files (a killed run's, or damaged)
         shutil.rmtree(folder)
     batch = batch or DEFAULT_BATCH["cuda" if device.startswith("cuda") else "cpu"]
     writer = BagWriter(folder, max_bag_size=max_bag_size, compression=compression, custom_data=custom_data)
@@ -236,9 +241,9 @@ def generate_shard(
             bar.update(len(episodes))
     writer.close()
     done = {"episodes": len(instances), "messages": writer.message_count, "sha256": _file_digests(folder),
-            "sizes": _file_sizes(folder), "settings": settings}
+            "sizes": _file_sizes(folder),
+            "settings": shard_settings(instances, views, skip, compression, max_bag_size, coverage_masks)}
     _write_marker(folder, done)
-    return True
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -341,16 +346,19 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
     from . import messages
 
     # What would stop a shard being written is found before any simulation: --out not a folder or not
-    # writable, a shard path that is a file or holds files generate did not write.
+    # writable, a finished shard written with other settings, a shard to (re)write that is a file or holds
+    # files generate did not write.
     if args.out.exists() and not args.out.is_dir():
         print(f"error: cannot write in --out {args.out}: it is a file, not a folder", file=sys.stderr)
         return 1
+    skip = frozenset([messages.particles_topic()]) if args.skip_particles else frozenset()
+    settings = {index: shard_settings(instances[index::count], args.views, skip, args.compression, args.max_bag_size,
+                                      args.coverage_masks) for index in index_range}
     try:
         args.out.mkdir(parents=True, exist_ok=True)
-        for index in index_range:
-            if not is_done(shard_dir(args.out, name, index, count)):
-                check_replaceable(shard_dir(args.out, name, index, count))
-    except ForeignFiles as exc:
+        to_write = [index for index in index_range
+                    if shard_to_write(shard_dir(args.out, name, index, count), settings[index])]
+    except (ShardMismatch, ForeignFiles) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     except OSError as exc:
@@ -358,11 +366,14 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
         return 1
     for index in index_range:
         folder = shard_dir(args.out, name, index, count)
+        if index not in to_write:
+            print(f"{folder}: already done, skipped", file=sys.stderr)
+            continue
         custom = {"generator": "ad_sim.generate", "shard": f"{index}/{count}", **source,
                   **({"masks": "coverage"} if args.coverage_masks else {})}
         writing.append(folder)
         try:
-            wrote = generate_shard(
+            write_shard(
                 instances[index::count],
                 folder,
                 device=args.device,
@@ -371,18 +382,18 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
                 max_bag_size=args.max_bag_size,
                 compression=args.compression,
                 custom_data=custom,
-                skip=frozenset([messages.particles_topic()]) if args.skip_particles else frozenset(),
+                skip=skip,
                 progress=not args.quiet,
                 coverage_masks=args.coverage_masks,
             )
-        except (BagError, ShardMismatch, ForeignFiles) as exc:
+        except BagError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
         except OSError as exc:  # a full disk, a folder made read-only: one line (the shard has no marker: a re-run redoes it)
             print(f"error: cannot write {folder}: {exc.strerror or exc}", file=sys.stderr)
             return 1
         writing.clear()
-        print(f"{folder}: {'written' if wrote else 'already done, skipped'}", file=sys.stderr)
+        print(f"{folder}: written", file=sys.stderr)
     return 0
 
 
