@@ -1,4 +1,5 @@
 """`ad_estimator evaluate`: offline metrics over bags (no ROS runtime)."""
+import csv
 import json
 import math
 import re
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from ad_estimator import evaluate
+from ad_estimator import estimate, evaluate
 from ad_estimator.metrics import family_ranges
 from ad_estimator.model import EstimatorModel
 from ad_estimator.window import FrameWindow
@@ -272,6 +273,26 @@ def test_a_frame_the_node_rejects_is_skipped_warned_and_counted(setup, tmp_path,
     np.testing.assert_allclose(episode["probabilities"], model.predict(out.features, out.valid).probabilities,
                                rtol=1e-5)
     assert "Input problems: 1 mask frame(s) skipped" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_a_frame_with_a_malformed_stamp_is_skipped_as_in_the_node(setup, tmp_path, capsys):
+    """A stamp with nanosec >= 1e9, which the node and estimate reject: one frame skipped (it ended the
+    whole evaluation with an error), the episode scored from the others as the node would."""
+    model_path, _ = setup
+    bag = write_test_bag(tmp_path / "bag", edit_mask=damaged(1, 5, lambda m: m["header"]["stamp"].update(
+        nanosec=1_500_000_000)))
+    with pytest.warns(UserWarning, match=r"episode test-disc-plasticine-0001: 1 mask frame\(s\) skipped.* stamp "
+                                         r"\(malformed\): stamp nanosec 1500000000 is not below 1e9"):
+        assert run_main(model_path, bag, tmp_path / "out") == 0
+    predictions = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    ((skipped),) = predictions["skipped_frames"]
+    assert skipped["stamp_ns"] is None and skipped["episode_id"] == "test-disc-plasticine-0001"
+    assert [p["slots"] for p in predictions["frames"]["25"]] == [25, 25, 25]
+    with pytest.warns(UserWarning, match="stamp nanosec 1500000000"):  # estimate skips it too
+        assert estimate.main(["--model", str(model_path), str(bag), "--out", str(tmp_path / "e.csv"), "--quiet"]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "e.csv")))
+    np.testing.assert_allclose(predictions["frames"]["25"][1]["probabilities"],
+                               [float(rows[1][f"p_{c}"]) for c in ("jelly", "plasticine", "sand")], rtol=1e-5)
 
 
 def test_an_image_size_change_restarts_the_window_as_in_the_node(setup, tmp_path):

@@ -42,6 +42,9 @@ def bag_episodes(bags: str | Path):
                 log.warning("%s: episode %s has %d of %d frames; skipped", bag, msg.episode_id, len(frames),
                             FRAME_COUNT)
                 continue
+            if any(stamp is None for stamp, _ in frames):
+                log.warning("%s: episode %s has a frame with a malformed stamp; skipped", bag, msg.episode_id)
+                continue
             yield bag, msg, sorted(frames, key=lambda f: f[0])
 
 

@@ -118,17 +118,23 @@ def image_topics(topics: dict[str, str]) -> list[str]:
 
 def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = False,
                    problems: list[str] | None = None):
-    """(instance, [(stamp_ns, Image)]) per episode of the bag, in order. `recover`: read a truncated
+    """(instance, [(stamp_ns, Image)]) per episode of the bag, in order; stamp_ns is None for a frame
+    whose stamp is malformed (the node rejects it; accepted_frames says why). `recover`: read a truncated
     or damaged file (a killed recorder) up to its last complete chunk, with a warning. `problems`,
     if given, gets the reader's warnings (BagReader.problems) once the bag is read."""
     reader = BagReader(bag, topics=[INSTANCE_TOPIC, mask_topic], recover=recover)
     check_image_topic(reader.topics(), mask_topic, bag)
     for episode in group_episodes(reader, INSTANCE_TOPIC):
-        frames = [(stamp_to_ns(m.header.stamp.sec, m.header.stamp.nanosec), m)
-                  for _, m in episode.messages.get(mask_topic, [])]
-        yield episode.instance, frames
+        yield episode.instance, [(_stamp_or_none(m.header.stamp), m) for _, m in episode.messages.get(mask_topic, [])]
     if problems is not None:
         problems += reader.problems
+
+
+def _stamp_or_none(stamp) -> int | None:
+    try:
+        return stamp_to_ns(stamp.sec, stamp.nanosec)
+    except ValueError:
+        return None
 
 
 def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed: int,
@@ -165,15 +171,17 @@ def accepted_frames(bag: Path, instance, frames, threshold: int | None) -> tuple
     accepted, masks, rejected = [], [], []
     for stamp, image in frames:
         try:
+            if stamp is None:
+                stamp_to_ns(image.header.stamp.sec, image.header.stamp.nanosec)  # raises, saying why
             masks.append(image_to_mask(image, MAX_IMAGE_PIXELS, threshold))
             accepted.append((stamp, image))
-        except ImageRejected as exc:
+        except ValueError as exc:  # ImageRejected, or a malformed stamp
             rejected.append({"bag": str(bag), "episode_id": instance.episode_id, "stamp_ns": stamp, "reason": str(exc)})
     return accepted, masks, rejected
 
 
-def stamp_text(stamp_ns: int) -> str:
-    return f"{stamp_ns / 1e9:.3f} s"
+def stamp_text(stamp_ns: int | None) -> str:
+    return "(malformed)" if stamp_ns is None else f"{stamp_ns / 1e9:.3f} s"
 
 
 def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], mask_topic: str = MASK_TOPIC,
