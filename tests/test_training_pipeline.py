@@ -63,6 +63,20 @@ def test_ctrl_c_while_the_pipeline_generates_bags_is_an_interrupt_not_a_failure(
     assert "interrupted" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("device, generated_on", [("cpu", "cpu"), ("cuda:1", "cuda:1"), ("auto", "cuda")])
+def test_bags_are_generated_on_the_device_asked_for(tmp_path, monkeypatch, device, generated_on):
+    """--device auto and cuda:<index> generated the bags on the CPU, silently (only "cuda" reached generate)."""
+    import ad_sim.generate
+    import torch
+
+    asked = []
+    monkeypatch.setattr(ad_sim.generate, "main", lambda argv: asked.append(argv[argv.index("--device") + 1]) or 130)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # as on a GPU machine: auto means cuda
+    assert main(["pipeline", "--size", "tiny", "--data", str(tmp_path / "bags"), "--out", str(tmp_path / "run"),
+                 "--device", device, "--no-progress"]) == 130
+    assert asked == [generated_on]
+
+
 def _pipeline_bags(tmp_path) -> Path:
     data = tmp_path / "bags"
     for i, split in enumerate(("train", "seen", "unseen")):

@@ -38,11 +38,15 @@ class Runtime:
         return self.rank == 0
 
 
+def resolve_device(device: str) -> str:
+    """--device auto -> cuda if torch sees a GPU, else cpu; any other device as given."""
+    return ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
+
+
 def init_runtime(device: str = "auto") -> Runtime:
     """Single process, or one process per GPU/CPU slot under torchrun (WORLD_SIZE > 1)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = resolve_device(device)
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError("--device cuda asked for, but torch sees no GPU; use --device cpu")
     if world > 1:

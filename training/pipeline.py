@@ -16,7 +16,7 @@ from ad_estimator.cli import count, fraction, positive, staged, torch_device_or_
 from ad_estimator.metrics import compute_metrics, format_table, json_text
 from ad_sim.materials import FRAME_COUNT
 from training import data, evaluate, export, train_student, train_teacher
-from training.engine import init_runtime
+from training.engine import init_runtime, resolve_device
 from training.train_student import ABLATIONS
 
 # Epochs per size: paper values (SPEC 9) for `paper`; `small` fits 2 CPU cores in under an hour.
@@ -35,7 +35,7 @@ def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str) -
     if not list(folder.rglob("*.mcap")) or not list(folder.rglob("DONE")):
         print(f"generating {size}/{split} bags into {folder} (ad_sim.generate, resumable)")
         code = generate(["--size", size, "--split", split, "--seed", str(seed), "--out", str(folder),
-                         "--device", "cuda" if device == "cuda" else "cpu"])
+                         "--device", resolve_device(device)])  # cuda:<index> too, and auto
         if code == 130:  # Ctrl-C: generate has said what is unfinished; stop as the pipeline's own Ctrl-C does
             raise KeyboardInterrupt
         if code:
