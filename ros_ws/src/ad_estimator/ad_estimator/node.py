@@ -3,11 +3,13 @@
 Thin ROS shell around ad_estimator.model (onnxruntime), .window (slots, episodes, output policy)
 and .images (Image -> mask). Threads: the subscription callback only checks header fields and
 puts the message in a bounded queue (full queue: the frame is dropped and counted); one worker
-thread converts, encodes, runs the model and publishes. Services run on the executor thread with
-their own window, sharing the (thread-safe) onnxruntime sessions.
+thread converts, encodes, runs the model and publishes. The executor has two threads: the ~/estimate
+clip service has its own callback group (a long clip must not hold up the subscription) and its own
+window, sharing the (thread-safe) onnxruntime sessions.
 
 Topics: subscribes /ad_sim/view_0/mask (remap `mask:=...` or the full name), publishes
-/ad_estimator/estimate (ad_msgs/MaterialEstimate, reliable) and /diagnostics at 1 Hz.
+/ad_estimator/estimate (ad_msgs/MaterialEstimate, reliable) and /diagnostics every
+diagnostics_period seconds (1 by default).
 Services: ~/reset (std_srvs/Trigger), ~/estimate (ad_msgs/srv/EstimateMaterial).
 """
 from __future__ import annotations
@@ -75,20 +77,23 @@ def estimate_message(estimate: Estimate, window: WindowOutput, frame_id: str, mo
 
 
 class Throttle:
-    """At most one log line per key every `period` seconds, saying how many were suppressed."""
+    """At most one log line per key every `period` seconds, saying how many were suppressed. Called from the
+    worker and from the clip service's thread, hence the lock."""
 
     def __init__(self, log, period: float = LOG_THROTTLE_S):
         self._log, self._period = log, period
         self._last: dict[str, float] = {}
         self._suppressed: dict[str, int] = {}
+        self._lock = threading.Lock()
 
     def __call__(self, key: str, message: str) -> None:
         now = time.monotonic()
-        if now - self._last.get(key, -1e9) < self._period:
-            self._suppressed[key] = self._suppressed.get(key, 0) + 1
-            return
-        extra = self._suppressed.pop(key, 0)
-        self._last[key] = now
+        with self._lock:
+            if now - self._last.get(key, -1e9) < self._period:
+                self._suppressed[key] = self._suppressed.get(key, 0) + 1
+                return
+            extra = self._suppressed.pop(key, 0)
+            self._last[key] = now
         self._log(message + (f" ({extra} more like this suppressed)" if extra else ""))
 
 
