@@ -127,11 +127,10 @@ def publish_frames(args) -> None:
 def run_ros(args) -> dict:
     import rclpy
     from ad_msgs.msg import MaterialEstimate
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-    from ad_estimator.node import GIL_SWITCH_INTERVAL_S, EstimatorNode
+    from ad_estimator.node import GIL_SWITCH_INTERVAL_S, EstimatorNode, make_executor
 
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # as the node's main() does
     rclpy.init()
@@ -146,7 +145,7 @@ def run_ros(args) -> dict:
         MaterialEstimate, "/ad_estimator/estimate",
         lambda m: received.setdefault(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, time.time()),
         QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
-    executor = SingleThreadedExecutor()
+    executor = make_executor()  # as the node's main()
     executor.add_node(node)
     executor.add_node(listener)
     spinner = threading.Thread(target=executor.spin, daemon=True)

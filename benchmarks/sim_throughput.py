@@ -2,8 +2,8 @@
 """MPM simulation throughput: particle-steps/s and instances/s of the batched Warp solver.
 
 Scenes are a representative mix (never run in CI):
-  paper: box / ball / cylinder / ellipsoid, randomly rotated, sized like the shape library at
-         instances.SCALE (about 3k to 11k particles at spacing dx/2), dropped 0.05-0.25 above the
+  paper: box / ball / cylinder / ellipsoid, randomly rotated, about the shape library's size
+         (about 3k to 11k particles at spacing dx/2), dropped 0.05-0.25 above the
          ground with a small random velocity; family uniform, parameters sampled per family.
   small: the same mix at half the linear size (about 8x fewer particles), for quick CPU checks.
 --episodes times ad_sim.episode.simulate_batch on real benchmark instances instead (shapes,
@@ -35,7 +35,9 @@ quiet_warp()
 
 from ad_sim import materials, mpm  # noqa: E402
 
-SHAPE_SIZE = {"paper": 0.35, "small": 0.175}  # edge of the shape's bounding cube (instances.SCALE)
+# Edge of the shape's bounding cube: a little under the shape library's longest side (instances.SCALE,
+# 0.4), with about as many particles as its objects; the README's figures were measured with these.
+SHAPE_SIZE = {"paper": 0.35, "small": 0.175}
 SPACING = 0.5 * mpm.DX
 
 

@@ -230,10 +230,6 @@ def wants_on_device(choice: str, rt: Runtime) -> bool:
     return choice == "yes" or (choice == "auto" and rt.device.type == "cuda")
 
 
-def _unwrap(model: torch.nn.Module) -> torch.nn.Module:
-    return model.module if isinstance(model, torch.nn.parallel.DistributedDataParallel) else model
-
-
 def _reduce_mean(values: dict[str, float], count: int, rt: Runtime) -> dict[str, float]:
     """Count-weighted mean of per-process sums across ranks."""
     keys = sorted(values)

@@ -16,7 +16,7 @@ from ad_estimator.cli import count, fraction
 from training import data
 from training.engine import (BEST, check_resumable, fit, init_runtime, load_checkpoint, main_first,
                              model_from_checkpoint, seed_everything, wants_on_device, weights_digest)
-from training.models.common import align_loss, task_loss
+from training.models.common import NLL_WEIGHT, align_loss, task_loss
 from training.models.student import FRAME_COUNT, StudentConfig, build_student, override_config, student_preset
 from training.models.teacher import TEACHER_PRESETS
 from training.train_teacher import (RECIPE_OPTIONS, add_common_args, fit_config, load_run_data, load_teacher, recipe,
@@ -25,8 +25,8 @@ from training.train_teacher import (RECIPE_OPTIONS, add_common_args, fit_config,
 ABLATIONS = ("none", "align_only", "full")
 # SystemExit's messages carry the prefix that __main__ gives ValueErrors, so that all errors read alike.
 PROG = "python -m training student"
-# SPEC 9: 0.1 align + 1.0 CE + 0.2 RegL1 (+ a small weight on the uncertainty head's NLL).
-ALIGN_WEIGHT, CE_WEIGHT, REGL1_WEIGHT, NLL_WEIGHT = 0.1, 1.0, 0.2, 0.05
+# SPEC 9: 0.1 align + 1.0 CE + 0.2 RegL1 (+ NLL_WEIGHT, a small weight on the uncertainty head's NLL).
+ALIGN_WEIGHT, CE_WEIGHT, REGL1_WEIGHT = 0.1, 1.0, 0.2
 MIN_PREFIX = 10  # the streaming student sees random prefixes of 10..25 frames: estimates are anytime
 
 
@@ -130,7 +130,7 @@ def student_loss(ablation: str, alpha: float, align_weight: float = ALIGN_WEIGHT
 
     def loss_fn(model, batch, train: bool):
         out = model(batch["masks"], batch["valid"])
-        task, logs = task_loss(out, batch["label"], batch["target"], batch["mask"], regl1_weight, NLL_WEIGHT)
+        task, logs = task_loss(out, batch["label"], batch["target"], batch["mask"], regl1_weight, NLL_WEIGHT, CE_WEIGHT)
         if ablation == "none":
             return task, logs
         align = align_loss(out["z"], batch["z_t"], alpha)

@@ -13,8 +13,9 @@ from torch import nn
 from ad_estimator.metrics import family_ranges
 from ad_sim.materials import FAMILIES, PARAMETER_NAMES, normalise
 
-NUM_CLASSES = 3
-NUM_PARAMS = 4
+NUM_CLASSES = len(FAMILIES)
+NUM_PARAMS = len(PARAMETER_NAMES)
+NLL_WEIGHT = 0.05  # a small weight on the uncertainty head's NLL (beside CE and RegL1)
 
 
 def family_scales() -> np.ndarray:
@@ -139,11 +140,12 @@ def uncertainty_nll(out: dict, target: torch.Tensor, mask: torch.Tensor) -> torc
 
 
 def task_loss(out: dict, labels: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-              regl1_weight: float = 1.0, nll_weight: float = 0.05) -> tuple[torch.Tensor, dict]:
+              regl1_weight: float = 1.0, nll_weight: float = NLL_WEIGHT, ce_weight: float = 1.0
+              ) -> tuple[torch.Tensor, dict]:
     ce = F.cross_entropy(out["logits"], labels)
     reg = masked_regl1(out["params"], target, mask, labels)
     nll = uncertainty_nll(out, target, mask)
-    loss = ce + regl1_weight * reg + nll_weight * nll
+    loss = ce_weight * ce + regl1_weight * reg + nll_weight * nll
     acc = (out["logits"].argmax(-1) == labels).float().mean()
     # score (CE + RegL1) selects the best checkpoint
     return loss, {"ce": ce.detach(), "regl1": reg.detach(), "nll": nll.detach(), "acc": acc,

@@ -463,13 +463,18 @@ def parse_cli(argv: list[str]) -> None:
     parser.parse_args(non_ros_args(parser.prog, argv)[1:])
 
 
+def make_executor(context=None) -> MultiThreadedExecutor:
+    """The node's executor: two threads, so that the clip service runs beside the stream's callbacks."""
+    return MultiThreadedExecutor(num_threads=2, context=context)
+
+
 def main(args=None) -> int:
     parse_cli(sys.argv if args is None else args)
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     rclpy.init(args=args)
     node = None
     try:
-        executor = MultiThreadedExecutor(num_threads=2)  # the clip service beside the stream's callbacks
+        executor = make_executor()
         node = EstimatorNode()
         executor.add_node(node)
         executor.spin()

@@ -66,7 +66,6 @@ PATCH = 10
 TILE_BLOCK = 256
 PATCH_SLOTS = -(-(PATCH**3) // TILE_BLOCK) * TILE_BLOCK  # patch nodes padded to whole flush rounds
 _PATCH = wp.constant(PATCH)
-_PATCH_NODES = wp.constant(PATCH**3)
 _PATCH_SLOTS = wp.constant(PATCH_SLOTS)
 _TILE_BLOCK = wp.constant(TILE_BLOCK)
 _FAR = wp.constant(1 << 20)
