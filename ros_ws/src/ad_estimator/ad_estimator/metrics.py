@@ -1,7 +1,7 @@
 """The metrics of the paper's tables (SPEC section 8), shared by `python -m training evaluate`
 and `ros2 run ad_estimator evaluate`.
 
-numpy and matplotlib only: this module must never import torch.
+numpy, matplotlib and ad_sim.families only: this module must never import torch or Warp.
 
 Inputs are a `Predictions` per number of observed frames (25 = the full clip, plus the
 temporal-OOD prefixes 24, 22, 18, 15). Parameters are SI (friction angle in radians);
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ad_sim.materials import FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS
+from ad_sim.families import FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS
 
 #: The temporal out-of-distribution rows: only the first K frames are observed.
 TEMPORAL_OOD_FRAMES = (24, 22, 18, 15)

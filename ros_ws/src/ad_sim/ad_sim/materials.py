@@ -1,4 +1,5 @@
-"""Material families, parameter ranges and the constitutive laws of the simulator.
+"""The constitutive laws of the simulator, and (re-exported from ad_sim.families) the material families and
+their parameter ranges.
 
 Pure Python plus Warp functions; no ROS. The laws follow the paper's MPM appendix (NCLaw style):
 each elastic law maps a deformation gradient to a Kirchhoff stress, each plastic law projects a
@@ -17,11 +18,10 @@ import math
 import numpy as np
 import warp as wp
 
-FAMILIES = ("jelly", "plasticine", "sand")
-PARAMETER_NAMES = ("youngs_modulus", "poissons_ratio", "yield_stress", "friction_angle")
+from .families import (  # noqa: F401 - re-exported: the simulator's users read them here
+    FAMILIES, FAMILY_PARAMETERS, FAMILY_RANGES, FIXED_PARAMETERS, FRAME_COUNT, FRAME_INTERVAL, PARAMETER_NAMES,
+    PARAMETER_RANGES, SAMPLED_PARAMETERS, denormalise, full_parameters, normalise, sample_parameters)
 
-FRAME_INTERVAL = 0.025  # s between recorded frames
-FRAME_COUNT = 25  # frames per episode, frame 0 = initial state
 GRID_RESOLUTION = 32  # grid cells per axis of the unit cube
 GRAVITY = 9.8  # m/s^2, along -z
 DENSITY = 1000.0  # kg/m^3
@@ -32,105 +32,11 @@ SIGMA_MIN = 1e-2
 SIGMA_MAX = 1e2
 NORM_EPS = 1e-12
 
-# Family sampling ranges (SPEC section 6): (low, high, "log" | "linear") or a fixed float.
-_PHI_LO, _PHI_HI = math.radians(10.0), math.radians(45.0)
-FAMILY_RANGES: dict[str, dict[str, tuple[float, float, str] | float]] = {
-    "jelly": {
-        "youngs_modulus": (1.5e4, 1.5e6, "log"),
-        "poissons_ratio": (0.20, 0.40, "linear"),
-    },
-    "plasticine": {
-        "youngs_modulus": (5e4, 5e5, "log"),
-        "poissons_ratio": (0.35, 0.48, "linear"),
-        "yield_stress": (500.0, 25000.0, "log"),
-    },
-    "sand": {
-        "youngs_modulus": 1e5,
-        "poissons_ratio": 0.3,
-        "friction_angle": (_PHI_LO, _PHI_HI, "linear"),
-    },
-}
-
-# Which parameters each family's law uses (fixed ones included), in PARAMETER_NAMES order.
-FAMILY_PARAMETERS: dict[str, tuple[str, ...]] = {
-    family: tuple(n for n in PARAMETER_NAMES if n in FAMILY_RANGES[family]) for family in FAMILIES
-}
-# Sampled (learnable) parameters per family and the fixed values of the others.
-SAMPLED_PARAMETERS: dict[str, tuple[str, ...]] = {
-    family: tuple(n for n in FAMILY_PARAMETERS[family] if isinstance(FAMILY_RANGES[family][n], tuple))
-    for family in FAMILIES
-}
-FIXED_PARAMETERS: dict[str, dict[str, float]] = {
-    family: {n: float(v) for n, v in FAMILY_RANGES[family].items() if not isinstance(v, tuple)}
-    for family in FAMILIES
-}
-
-# Union ranges used by normalise()/denormalise() (docs/architecture.md): one head serves all families.
-PARAMETER_RANGES: dict[str, tuple[float, float, str]] = {
-    "youngs_modulus": (1.5e4, 1.5e6, "log"),
-    "poissons_ratio": (0.20, 0.48, "linear"),
-    "yield_stress": (500.0, 25000.0, "log"),
-    "friction_angle": (_PHI_LO, _PHI_HI, "linear"),
-}
-
 # Integer family codes used inside kernels (index into FAMILIES).
 FAMILY_CODES = {family: code for code, family in enumerate(FAMILIES)}
 JELLY = wp.constant(FAMILY_CODES["jelly"])
 PLASTICINE = wp.constant(FAMILY_CODES["plasticine"])
 SAND = wp.constant(FAMILY_CODES["sand"])
-
-
-def _check_family(family: str) -> None:
-    if family not in FAMILY_RANGES:
-        raise ValueError(f"unknown material family {family!r}; expected one of {FAMILIES}")
-
-
-def sample_parameters(family: str, rng: np.random.Generator) -> dict[str, float]:
-    """Draws one parameter set of `family` (SI units, radians): log-uniform E and yield, uniform nu/phi."""
-    _check_family(family)
-    out: dict[str, float] = {}
-    for name in FAMILY_PARAMETERS[family]:
-        spec = FAMILY_RANGES[family][name]
-        if not isinstance(spec, tuple):
-            out[name] = float(spec)
-            continue
-        lo, hi, scale = spec
-        if scale == "log":
-            out[name] = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
-        else:
-            out[name] = float(rng.uniform(lo, hi))
-    return out
-
-
-def _union_range(name: str) -> tuple[float, float, str]:
-    if name not in PARAMETER_RANGES:
-        raise ValueError(f"unknown parameter {name!r}; expected one of {PARAMETER_NAMES}")
-    return PARAMETER_RANGES[name]
-
-
-def normalise(name: str, value):
-    """Maps a parameter (SI) to [0, 1] over its union range (log space for E and yield stress).
-
-    Works on floats and numpy arrays alike; values outside the range map outside [0, 1].
-    """
-    lo, hi, scale = _union_range(name)
-    v = np.asarray(value, dtype=np.float64)
-    if scale == "log":
-        out = (np.log(v) - math.log(lo)) / (math.log(hi) - math.log(lo))
-    else:
-        out = (v - lo) / (hi - lo)
-    return float(out) if out.ndim == 0 else out
-
-
-def denormalise(name: str, value):
-    """Inverse of normalise()."""
-    lo, hi, scale = _union_range(name)
-    v = np.asarray(value, dtype=np.float64)
-    if scale == "log":
-        out = np.exp(math.log(lo) + v * (math.log(hi) - math.log(lo)))
-    else:
-        out = lo + v * (hi - lo)
-    return float(out) if out.ndim == 0 else out
 
 
 def lame(youngs_modulus: float, poissons_ratio: float) -> tuple[float, float]:
@@ -144,32 +50,6 @@ def drucker_prager_alpha(friction_angle: float) -> float:
     """alpha = sqrt(2/3) * 2 sin(phi) / (3 - sin(phi)) of the Drucker-Prager cone."""
     s = math.sin(friction_angle)
     return math.sqrt(2.0 / 3.0) * 2.0 * s / (3.0 - s)
-
-
-def full_parameters(family: str, parameters: dict[str, float]) -> dict[str, float]:
-    """The family's parameters with fixed values filled in; raises on missing or foreign names."""
-    _check_family(family)
-    unknown = set(parameters) - set(PARAMETER_NAMES)
-    if unknown:
-        raise ValueError(f"unknown parameter(s) {sorted(unknown)}; expected names from {PARAMETER_NAMES}")
-    out = dict(FIXED_PARAMETERS[family])
-    out.update({k: float(v) for k, v in parameters.items() if k in FAMILY_PARAMETERS[family]})
-    missing = [n for n in FAMILY_PARAMETERS[family] if n not in out]
-    if missing:
-        raise ValueError(f"{family} needs parameter(s) {missing} (SI units, radians for friction_angle)")
-    # Values outside the sampling ranges are allowed (e.g. re-simulating predictions), unphysical ones not.
-    valid = {
-        "youngs_modulus": lambda v: v > 0.0,
-        "poissons_ratio": lambda v: -1.0 < v < 0.5,
-        "yield_stress": lambda v: v > 0.0,
-        "friction_angle": lambda v: 0.0 <= v < math.pi / 2,
-    }
-    bad = {n: v for n, v in out.items() if not (math.isfinite(v) and valid[n](v))}
-    if bad:
-        raise ValueError(
-            f"{family}: unphysical parameter(s) {bad}; need E > 0, -1 < nu < 0.5, yield > 0, 0 <= phi < pi/2 (radians)"
-        )
-    return out
 
 
 # ----------------------------------------------------------------------------------------------
