@@ -464,6 +464,17 @@ def test_teacher_output_shapes():
     assert ((out["params"] >= 0) & (out["params"] <= 1)).all() and out["params_logvar"].shape == (3, 4)
 
 
+@pytest.mark.parametrize("size, world", [(10, 3), (9, 2), (2, 4), (7, 1)])
+def test_validation_shares_count_every_sample_once_over_the_ranks(size, world):
+    """DistributedSampler padded the ranks by repeating samples, which biased the validation mean that picks
+    best.pt; the shares now hold each sample once (or, with fewer samples than ranks, all of them on each)."""
+    shares = [list(engine.validation_share(list(range(size)), rank, world)) for rank in range(world)]
+    if size < world:
+        assert shares == [list(range(size))] * world
+    else:
+        assert sorted(i for share in shares for i in share) == list(range(size))
+
+
 def test_ddp_two_processes_gloo(bags, teacher_ckpt, tmp_path):
     """torchrun --nproc_per_node=2 -m training student: both ranks train, rank 0 checkpoints."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}

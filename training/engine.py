@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 import torch
 import torch.distributed as dist
-from torch.utils.data import DataLoader, DistributedSampler
+from torch.utils.data import DataLoader, DistributedSampler, Subset
 from tqdm import tqdm
 
 from ad_estimator.cli import write_text_staged
@@ -230,6 +230,16 @@ def wants_on_device(choice: str, rt: Runtime) -> bool:
     return choice == "yes" or (choice == "auto" and rt.device.type == "cuda")
 
 
+def validation_share(dataset, rank: int, world: int):
+    """This rank's part of the validation set: every sample once over the ranks. (DistributedSampler pads
+    the ranks to equal sizes by repeating samples, which the count-weighted mean then counted twice, and that
+    mean picks best.pt.) With fewer samples than ranks, every rank takes them all: each rank's mean, and so
+    the mean over ranks, is then the set's."""
+    if world == 1 or len(dataset) < world:
+        return dataset
+    return Subset(dataset, range(rank, len(dataset), world))
+
+
 def _reduce_mean(values: dict[str, float], count: int, rt: Runtime) -> dict[str, float]:
     """Count-weighted mean of per-process sums across ranks."""
     keys = sorted(values)
@@ -337,10 +347,8 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
     collate = getattr(train_set, "collate", None)
     loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=sampler, num_workers=0, collate_fn=collate,
                         pin_memory=rt.device.type == "cuda" and getattr(train_set, "on_device", None) is None)
-    val_sampler = DistributedSampler(val_set, num_replicas=rt.world, rank=rt.rank, shuffle=False) \
-        if val_set is not None and len(val_set) else None
-    val_loader = DataLoader(val_set, batch_size=cfg.batch_size, sampler=val_sampler,
-                            collate_fn=getattr(val_set, "collate", None)) if val_sampler else None
+    val_loader = DataLoader(validation_share(val_set, rt.rank, rt.world), batch_size=cfg.batch_size,
+                            collate_fn=getattr(val_set, "collate", None)) if val_set is not None and len(val_set) else None
 
     raw = model
     if rt.world > 1:
