@@ -40,15 +40,15 @@ def run(device: str, output: Path, count: int, frames: int) -> None:
 
 
 def compare(a: Path, b: Path) -> None:
-    A, B = np.load(a), np.load(b)
-    shapes = {name: [A[key].shape for key in A.files if key != "families"] for name, A in ((a, A), (b, B))}
-    if shapes[a] != shapes[b] or list(A["families"]) != list(B["families"]):
-        raise ValueError(f"{a} and {b} hold different runs (scenes, families or frames differ); compare files "
-                         "written with the same --scenes and --frames")
-    for i, family in enumerate(A["families"]):
-        dx = np.abs(A[f"x{i}"] - B[f"x{i}"]).max()
-        dF = np.abs(A[f"F{i}"] - B[f"F{i}"]).max()
-        print(f"scene {i:2d} {family:>10}: max |dx| {dx:.2e} m, max |dF| {dF:.2e}")
+    with np.load(a) as A, np.load(b) as B:
+        shapes = {name: [A[key].shape for key in A.files if key != "families"] for name, A in ((a, A), (b, B))}
+        if shapes[a] != shapes[b] or list(A["families"]) != list(B["families"]):
+            raise ValueError(f"{a} and {b} hold different runs (scenes, families or frames differ); compare files "
+                             "written with the same --scenes and --frames")
+        for i, family in enumerate(A["families"]):
+            dx = np.abs(A[f"x{i}"] - B[f"x{i}"]).max()
+            dF = np.abs(A[f"F{i}"] - B[f"F{i}"]).max()
+            print(f"scene {i:2d} {family:>10}: max |dx| {dx:.2e} m, max |dF| {dF:.2e}")
 
 
 def main(argv=None) -> int:

@@ -75,17 +75,19 @@ def main() -> None:
     node = Node("throughput", context=context)
     publishers = SimPublishers(node, args.views)
     recorder = start("record", domain, work / "record.log", output=str(work / "recorded"))
-    while not publishers.matched(1):
-        if recorder.poll() is not None:
-            raise SystemExit((work / "record.log").read_text())
-        time.sleep(0.05)
-    start_time = time.perf_counter()
-    for topic, message in tqdm(converted, desc="publish", unit="msg"):
-        publishers.publish_message(topic, message)
-    publishers.wait_for_acks()
-    through_dds = time.perf_counter() - start_time
-    time.sleep(0.5)
-    stop(recorder, signal.SIGINT)
+    try:  # the recorder is stopped whatever happens here (it outlived a failed run)
+        while not publishers.matched(1):
+            if recorder.poll() is not None:
+                raise SystemExit((work / "record.log").read_text())
+            time.sleep(0.05)
+        start_time = time.perf_counter()
+        for topic, message in tqdm(converted, desc="publish", unit="msg"):
+            publishers.publish_message(topic, message)
+        publishers.wait_for_acks()
+        through_dds = time.perf_counter() - start_time
+        time.sleep(0.5)
+    finally:
+        stop(recorder, signal.SIGINT)
     received, written = recorder_counts((work / "record.log").read_text())
     in_bag = sum(1 for _ in BagReader(work / "recorded", raw=True))
     node.destroy_node()

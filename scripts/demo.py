@@ -114,8 +114,8 @@ def summary(rows) -> str:
 
 
 def start(*command: str, log_path: Path) -> subprocess.Popen:
-    log = open(log_path, "w")
-    return subprocess.Popen([str(ADRUN), *command], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    with open(log_path, "w") as log:  # the child keeps its own copy of the file
+        return subprocess.Popen([str(ADRUN), *command], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
 
 def stop(proc: subprocess.Popen) -> None:

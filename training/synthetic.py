@@ -79,7 +79,6 @@ def synthetic_episode(index: int, seed: int, views: int, split: str = "train"):
 def write_synthetic_bag(folder: str | Path, episodes: int, views: int = 2, seed: int = 0,
                         split: str = "train", first: int = 0) -> Path:
     """Writes `episodes` synthetic episodes (indices first, first+1, ...) as one bag folder."""
-    writer = BagWriter(folder)
-    write_episodes(writer, [synthetic_episode(first + i, seed, views, split) for i in range(episodes)], 0)
-    writer.close()
+    with BagWriter(folder) as writer:
+        write_episodes(writer, [synthetic_episode(first + i, seed, views, split) for i in range(episodes)], 0)
     return Path(folder)

@@ -232,14 +232,15 @@ def write_shard(
     if folder.exists():  # shard_to_write checked it holds only generate's own files (a killed run's, or damaged)
         shutil.rmtree(folder)
     batch = batch or DEFAULT_BATCH["cuda" if device.startswith("cuda") else "cpu"]
-    writer = BagWriter(folder, max_bag_size=max_bag_size, compression=compression, custom_data=custom_data)
-    with tqdm(total=len(instances), desc=folder.name, unit="episode", disable=not progress) as bar:
+    # Closed also on an error or Ctrl-C: what was written stays readable (the shard, without its marker,
+    # is still redone by the next run).
+    with BagWriter(folder, max_bag_size=max_bag_size, compression=compression, custom_data=custom_data) as writer, \
+            tqdm(total=len(instances), desc=folder.name, unit="episode", disable=not progress) as bar:
         for start in range(0, len(instances), batch):
             episodes = simulate_batch(instances[start : start + batch], device=device, views=views,
                                       coverage_masks=coverage_masks)
             write_episodes(writer, episodes, start, skip=skip)
             bar.update(len(episodes))
-    writer.close()
     done = {"episodes": len(instances), "messages": writer.message_count, "sha256": _file_digests(folder),
             "sizes": _file_sizes(folder),
             "settings": shard_settings(instances, views, skip, compression, max_bag_size, coverage_masks)}
