@@ -49,7 +49,7 @@ def ros(ros_domain_id):
         yield context, executor
 
 
-def start(ros, model_path, **params):
+def start(ros, model_path, remap=f"mask:={TOPIC}", **params):
     context, executor = ros
     # Tests publish bursts faster than real time; a busy CI machine can stall a burst for longer than
     # the default idle flush, which would emit an early estimate: tests of idle flushing set it.
@@ -57,7 +57,7 @@ def start(ros, model_path, **params):
     overrides = [Parameter("model_path", value=str(model_path))]
     overrides += [Parameter(k, value=v) for k, v in params.items()]
     node = EstimatorNode(context=context, parameter_overrides=overrides,
-                         cli_args=["--ros-args", "-r", f"mask:={TOPIC}"])
+                         cli_args=["--ros-args", "-r", remap])
     client = Node("estimator_test_client", context=context)
     estimates = []
     client.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append, 10)
@@ -372,6 +372,15 @@ def test_throttled_warnings_account_for_every_call_from_both_threads():
             assert len(lines) + suppressed == 10001 and len(lines) > 1
     finally:
         sys.setswitchinterval(interval)
+
+
+def test_the_input_remapped_by_its_full_name_is_the_one_reported(ros, model_paths):
+    """Remapped by the full name (as docs/estimator.md allows), the subscription was on the new topic but the
+    start-up line, /diagnostics and the QoS error named the default one."""
+    t = start(ros, model_paths["streaming"], remap=f"{DEFAULT_INPUT_TOPIC}:={TOPIC}")  # up: subscribed to TOPIC
+    assert t.node.input_topic == TOPIC
+    publish_episode(t, falling_masks(seed=9), 0)
+    assert wait_for(lambda: len(t.estimates) == 1)
 
 
 def test_diagnostics(ros, model_paths):

@@ -129,12 +129,12 @@ class EstimatorNode(Node):
         reliability = ReliabilityPolicy.RELIABLE if p["reliable"] else ReliabilityPolicy.BEST_EFFORT
         input_qos = QoSProfile(depth=p["input_depth"], reliability=reliability,
                                history=qos_profile_sensor_data.history, durability=qos_profile_sensor_data.durability)
-        self.input_topic = self._input_topic()
         self.publisher = self.create_publisher(MaterialEstimate, "~/estimate", QoSProfile(depth=10))
         self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.subscription = self.create_subscription(
-            Image, self.input_topic, self.on_image, input_qos,
+            Image, self._input_topic(), self.on_image, input_qos,
             event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self.on_incompatible_qos))
+        self.input_topic = self.subscription.topic_name  # after any remap, the default topic's by its full name too
         self.create_service(Trigger, "~/reset", self.on_reset)
         # Its own group: a clip (up to MAX_CLIP_FRAMES large frames) takes seconds, and in the default group,
         # on a multi-threaded executor, it would hold up the subscription while the stream's frames are lost.

@@ -278,7 +278,8 @@ def _parser() -> argparse.ArgumentParser:
         help="mask pixels hold their area coverage of the 512x512 render (0..255, grey edges) instead of 0/255: for "
              "training students on grey masks (python -m training student --set mask_levels=coverage); a pixel > 127 is "
              "still exactly the object, so the estimator and everything that thresholds reads the same masks")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars, no Warp start-up messages")
+    parser.add_argument("--quiet", action="store_true",
+                        help="no progress bars, no Warp start-up banner or kernel-load lines (Warp's warnings stay)")
     return parser
 
 
