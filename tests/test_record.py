@@ -178,3 +178,44 @@ def test_a_stop_is_not_held_off_by_a_topic_that_keeps_publishing(rclpy_context, 
     finally:
         node.destroy_node()
     assert len(list(BagReader(tmp_path / "bag"))) >= 50
+
+
+def test_a_header_stamp_that_cannot_be_a_log_time_is_recorded_at_its_receive_time(rclpy_context, ros_domain_id,
+                                                                                  tmp_path):
+    """Stamps 5, 6, -1 and 7 s, one with nanosec 1e9 (MCAP log times are unsigned, and 1e9 ns is no nanosecond
+    part) and raw bytes too short for a header: the unusable ones are recorded at their receive time, with one
+    warning for the topic, and the recorder exits 0 leaving a whole bag (the negative stamp crashed it, leaving a
+    42-byte .mcap)."""
+    from rclpy.node import Node
+    from sensor_msgs.msg import Image
+
+    node = Node("stamps", context=rclpy_context)
+    camera = node.create_publisher(Image, "/camera", 10)
+    stamps = [(5, 0), (6, 0), (-1, 0), (7, 0), (8, 1_000_000_000)]
+    try:
+        recorder = start("record", ros_domain_id, tmp_path / "r.log", output=str(tmp_path / "bag"), topics=["/camera"])
+        wait_for_log(tmp_path / "r.log", r"subscribed to /camera ", recorder)
+        deadline = time.monotonic() + 30
+        while camera.get_subscription_count() < 1:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        before = time.time_ns()
+        for sec, nanosec in stamps:
+            message = Image(encoding="mono8")
+            message.header.stamp.sec, message.header.stamp.nanosec = sec, nanosec
+            camera.publish(message)
+        camera.publish(b"\x00\x01\x00\x00")  # a CDR encapsulation header alone, published raw as replay does
+        assert camera.wait_for_all_acked()
+        time.sleep(0.3)
+        assert stop(recorder) == 0, (tmp_path / "r.log").read_text()
+        after = time.time_ns()  # acknowledged is not yet received by the recorder's callback
+    finally:
+        node.destroy_node()
+    log = (tmp_path / "r.log").read_text()
+    assert "Traceback" not in log and recorder_counts(log) == (6, 6), log
+    warnings = [line for line in log.splitlines() if "receive time" in line]
+    assert len(warnings) == 1 and "/camera: header stamp -1 s 0 ns cannot be a log time" in warnings[0], log
+    read = list(BagReader(tmp_path / "bag", raw=True))  # finalised: reads without recover
+    assert [m.log_time_ns for m in read[:3]] == [5 * 10**9, 6 * 10**9, 7 * 10**9]
+    assert all(before <= m.log_time_ns <= after for m in read[3:]) and len(read) == 6
+    assert bytes(read[-1].message) == b"\x00\x01\x00\x00"

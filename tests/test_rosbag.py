@@ -329,6 +329,53 @@ def test_repair_to_an_out_that_cannot_be_created_is_one_line(bag, tmp_path, caps
         assert re.fullmatch(r"error: cannot create bag output /proc/ad_sim_repair_test: \S.*\n", err), err
 
 
+def test_repair_takes_the_default_for_unusable_recorded_qos_and_keeps_every_message(bag, tmp_path, capsys):
+    """offered_qos_profiles as the YAML string of rosbag2 before format 9: usable for the instance, not YAML for a
+    mask topic, not a list of profiles for another. A warning line for each unusable one, whose topic gets the
+    default profile, and the whole bag repaired (it was a YAML traceback, leaving a bag without topics at --out)."""
+    source, written = bag
+    path = tmp_path / "old"
+    shutil.copytree(source, path)
+    metadata_file = path / "metadata.yaml"
+    metadata = yaml.safe_load(metadata_file.read_text())
+    listed = {entry["topic_metadata"]["name"]: entry["topic_metadata"]
+              for entry in metadata["rosbag2_bagfile_information"]["topics_with_message_count"]}
+    instance = listed[messages.instance_topic()]
+    instance["offered_qos_profiles"] = yaml.safe_dump(instance["offered_qos_profiles"])
+    listed[messages.mask_topic(0)]["offered_qos_profiles"] = "- history: [unclosed"
+    listed[messages.mask_topic(1)]["offered_qos_profiles"] = "garbage"
+    metadata_file.write_text(yaml.safe_dump(metadata))
+    with pytest.warns(UserWarning) as caught:
+        assert rosbag.main(["repair", str(path), "--out", str(tmp_path / "fixed")]) == 0
+    assert [str(w.message) for w in caught] == [
+        f"{metadata_file}: unusable offered_qos_profiles for {messages.mask_topic(0)}: not YAML (expected ',' or ']', "
+        "but got '<stream end>'); the repaired bag lists the default profile for it",
+        f"{metadata_file}: unusable offered_qos_profiles for {messages.mask_topic(1)}: not a list of profiles "
+        "('garbage'); the repaired bag lists the default profile for it"]
+    assert capsys.readouterr().out == f"{tmp_path / 'fixed'}: {len(written)} messages written\n"
+    assert [(t, s) for t, s, _ in BagReader(tmp_path / "fixed")] == [(t, s) for t, s, _ in written]
+    repaired = yaml.safe_load((tmp_path / "fixed" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    qos = {entry["topic_metadata"]["name"]: entry["topic_metadata"]["offered_qos_profiles"]
+           for entry in repaired["topics_with_message_count"]}
+    assert qos[messages.instance_topic()][0]["durability"] == "transient_local"  # as recorded
+    assert qos[messages.mask_topic(0)] == qos[messages.mask_topic(1)] == [rosbag.qos_profile()]
+
+
+def test_a_time_that_is_not_an_mcap_time_is_refused_and_the_bag_stays_whole(tmp_path):
+    """A negative log or publish time: a BagError for that message, and the messages before and after it are in
+    the closed bag (the MCAP writer kept the time in its statistics and failed on it again when closing)."""
+    with BagWriter(tmp_path / "bag") as writer:
+        writer.add_topic("/masks", messages.IMAGE_TYPE)
+        writer.write("/masks", 5, b"before")
+        with pytest.raises(BagError, match="^log time -1 ns or publish time -1 ns of a message on /masks is not an "
+                                           r"MCAP time \(0 to 18446744073709551615 ns\)$"):
+            writer.write("/masks", -1, b"negative")
+        with pytest.raises(BagError, match="publish time -2 ns"):
+            writer.write("/masks", 6, b"published before 1970", publish_time_ns=-2)
+        writer.write("/masks", 7, b"after")
+    assert [(m.log_time_ns, m.message) for m in BagReader(tmp_path / "bag", raw=True)] == [(5, b"before"), (7, b"after")]
+
+
 def test_corrupt_chunk_names_file_and_offset(tmp_path):
     path = tmp_path / "corrupt"
     written = write_fabricated_bag(path, episodes=1, chunk_size=50_000)

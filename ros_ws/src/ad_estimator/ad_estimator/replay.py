@@ -10,7 +10,6 @@ nodes run with use_sim_time.
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import sys
 import time
@@ -18,32 +17,23 @@ import warnings
 from pathlib import Path
 
 import rclpy
-import yaml
 from builtin_interfaces.msg import Time
 from rosgraph_msgs.msg import Clock
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tqdm import tqdm
 
 from ad_estimator.cli import HelpFormatter
-from ad_sim.dds import MAX_QOS_DEPTH, non_ros_args, use_fast_heartbeat
-from ad_sim.rosbag import BagError, BagReader, one_line_warnings
+from ad_sim.dds import message_class, non_ros_args, qos_from_profile, use_fast_heartbeat
+from ad_sim.rosbag import BagError, BagReader, one_line_warnings, parse_offered_qos_profiles
 
 # Used when a bag has no metadata.yaml (a lone .mcap), and for what its offered_qos_profiles leave out or make
-# unusable: what the simulator offers.
+# unusable: what the simulator offers (ad_sim.messages.topic_qos, not imported: its module loads Warp and SciPy).
 DEFAULT_QOS = {"reliability": "reliable", "durability": "volatile", "history": "keep_last", "depth": 100}
 TRANSIENT_LOCAL_TOPICS = ("/ad_sim/instance",)
-# Older rosbag2 metadata stores the rmw enum values instead of names.
-_RELIABILITY = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT,
-                1: ReliabilityPolicy.RELIABLE, 2: ReliabilityPolicy.BEST_EFFORT}
-_DURABILITY = {"transient_local": DurabilityPolicy.TRANSIENT_LOCAL, "volatile": DurabilityPolicy.VOLATILE,
-               1: DurabilityPolicy.TRANSIENT_LOCAL, 2: DurabilityPolicy.VOLATILE}
-_HISTORY = {"keep_last": HistoryPolicy.KEEP_LAST, "keep_all": HistoryPolicy.KEEP_ALL,
-            1: HistoryPolicy.KEEP_LAST, 2: HistoryPolicy.KEEP_ALL}
-_UNKNOWN_HISTORY = ("unknown", 3)  # RMW_QOS_POLICY_HISTORY_UNKNOWN, by name or enum value
 # time.sleep raises OverflowError past about 292 years (and --rate 1e-300 makes any gap that long): --delay is
 # kept to a day and --rate to 1000 times slower than recorded; the pacing sleeps go in steps of at most a day,
 # so that even a bag with a gap of centuries between log times waits rather than fails.
@@ -55,58 +45,23 @@ MAX_SLEEP_S = 86400.0
 def qos_from_recorded(topic: str, profiles) -> QoSProfile:
     """QoSProfile for a topic from rosbag2's offered_qos_profiles (a list, or the YAML string older bags hold).
 
-    History unknown with depth 0, what rosbag2 records for discovered publishers, takes the default history and
-    depth silently. Any other recorded setting that cannot be used (a malformed entry, system default or unknown,
-    depth 0 with keep_last) takes the topic's default with a warning naming the topic: a bag recorded elsewhere
-    still plays, with the rest of its recorded QoS."""
+    Its first profile, with the topic's default for what it lacks (ad_sim.dds.qos_from_profile). Anything that
+    cannot be used (the whole, or a setting) takes the default with a warning naming the topic: a bag recorded
+    elsewhere still plays, with the rest of its recorded QoS."""
     default = dict(DEFAULT_QOS, durability="transient_local" if topic in TRANSIENT_LOCAL_TOPICS else "volatile")
     unusable = []
-    if isinstance(profiles, str):
-        try:
-            profiles = yaml.safe_load(profiles)
-        except yaml.YAMLError as exc:  # its own message runs over several lines
-            unusable.append(f"not YAML ({getattr(exc, 'problem', None) or type(exc).__name__})")
-            profiles = None
-    if profiles and not (isinstance(profiles, list) and isinstance(profiles[0], dict)):
-        unusable.append(f"not a list of profiles ({profiles!r:.60})")
-        profiles = None
-    recorded = profiles[0] if profiles else {}
-    if recorded.get("history") in _UNKNOWN_HISTORY and recorded.get("depth") == 0:
-        # What `ros2 bag record` writes for every publisher it discovers (the middleware does not say): the
-        # default keep_last depth is meant, not a problem to warn about on every topic of every such bag.
-        recorded = {k: v for k, v in recorded.items() if k not in ("history", "depth")}
-
-    def setting(name, table):
-        value = recorded.get(name, default[name])
-        # bool is an int to Python (True would read as enum value 1); a list or mapping is not hashable
-        if isinstance(value, (str, int)) and not isinstance(value, bool) and value in table:
-            return table[value]
-        unusable.append(f"{name} {value!r}")
-        return table[default[name]]
-
-    reliability, durability = setting("reliability", _RELIABILITY), setting("durability", _DURABILITY)
-    history, depth = setting("history", _HISTORY), recorded.get("depth", default["depth"])
-    if not (isinstance(depth, int) and not isinstance(depth, bool) and 0 < depth <= MAX_QOS_DEPTH):
-        if history == HistoryPolicy.KEEP_LAST:  # keep_all has no use for a depth
-            unusable.append(f"depth {depth!r}")
-        depth = default["depth"]
-    qos = QoSProfile(reliability=reliability, durability=durability, history=history, depth=depth)
-    if unusable:
-        used = ", ".join(policy.name.lower() for policy in (reliability, durability, history))
-        warnings.warn(f"unusable QoS for {topic} in metadata.yaml ({', '.join(unusable)}); replaying it as {used}"
-                      f"{f', depth {depth}' if history == HistoryPolicy.KEEP_LAST else ''} (the default for what "
-                      "was unusable)")
-    return qos
-
-
-def message_class(type_name: str):
-    """'pkg/msg/Type' -> the rclpy message class (the package must be installed and sourced)."""
-    package, _, name = type_name.partition("/msg/")
     try:
-        return getattr(importlib.import_module(f"{package}.msg"), name)
-    except (ImportError, AttributeError) as exc:
-        raise BagError(f"message type {type_name} is not available here ({exc}); source the workspace "
-                       "that provides it (ros_ws/install/setup.bash)") from exc
+        profiles = parse_offered_qos_profiles(profiles)
+    except ValueError as exc:
+        unusable.append(str(exc))
+        profiles = []
+    qos = qos_from_profile(profiles[0] if profiles else {}, default, unusable)
+    if unusable:
+        used = ", ".join(policy.name.lower() for policy in (qos.reliability, qos.durability, qos.history))
+        warnings.warn(f"unusable QoS for {topic} in metadata.yaml ({', '.join(unusable)}); replaying it as {used}"
+                      f"{f', depth {qos.depth}' if qos.history == HistoryPolicy.KEEP_LAST else ''} (the default for "
+                      "what was unusable)")
+    return qos
 
 
 def recorded_topics(reader: BagReader) -> dict[str, tuple[str, QoSProfile]]:

@@ -1,6 +1,7 @@
 """ROS process set-up shared by the nodes: their command line (non_ros_args), their parameters
-(declare_parameters, number) and, for those that publish the simulator's topics (simulator,
-replay), DDS writer settings (use_fast_heartbeat).
+(declare_parameters, number), the rclpy message class of a type name and the QoSProfile of a QoS
+description as bags hold them (message_class, qos_from_profile) and, for those that publish the
+simulator's topics (simulator, replay), DDS writer settings (use_fast_heartbeat).
 
 Reliable writers repair a lost sample and learn of acknowledgements at their heartbeats: every
 3 s by default on Fast DDS. That caps paced playback and can hold a stream up for seconds after
@@ -9,14 +10,26 @@ one lost packet, so these nodes load a default writer profile with 20 ms heartbe
 """
 from __future__ import annotations
 
+import importlib
 import os
 import sys
 from pathlib import Path
 
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from .rosbag import BagError, split_type
 
 FAST_HEARTBEAT_PROFILE = Path(__file__).resolve().parent / "data" / "dds" / "fast_heartbeat.xml"
 MAX_QOS_DEPTH = 2**31 - 1  # rclpy refuses a larger history depth (a TypeError from its rmw_qos_profile_t)
+# QoS policies by rosbag2's names; older rosbag2 metadata stores the rmw enum values instead.
+_RELIABILITY = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT,
+                1: ReliabilityPolicy.RELIABLE, 2: ReliabilityPolicy.BEST_EFFORT}
+_DURABILITY = {"transient_local": DurabilityPolicy.TRANSIENT_LOCAL, "volatile": DurabilityPolicy.VOLATILE,
+               1: DurabilityPolicy.TRANSIENT_LOCAL, 2: DurabilityPolicy.VOLATILE}
+_HISTORY = {"keep_last": HistoryPolicy.KEEP_LAST, "keep_all": HistoryPolicy.KEEP_ALL,
+            1: HistoryPolicy.KEEP_LAST, 2: HistoryPolicy.KEEP_ALL}
+_UNKNOWN_HISTORY = ("unknown", 3)  # RMW_QOS_POLICY_HISTORY_UNKNOWN, by name or enum value
 
 
 def use_fast_heartbeat() -> None:
@@ -56,3 +69,44 @@ def number(node, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"{name} must be a number, got {value!r}")
     return float(value)
+
+
+def message_class(type_name: str):
+    """'pkg/msg/Type' -> the rclpy message class (the package must be installed and sourced)."""
+    package, namespace, name = split_type(type_name)
+    try:
+        return getattr(importlib.import_module(f"{package}.{namespace}"), name)
+    except (ImportError, AttributeError) as exc:
+        raise BagError(f"message type {type_name} is not available here ({exc}); source the workspace "
+                       "that provides it (ros_ws/install/setup.bash)") from exc
+
+
+def qos_from_profile(profile: dict, default: dict, unusable: list[str] | None = None) -> QoSProfile:
+    """rclpy QoSProfile of a QoS description as rosbag2 writes it (reliability, durability, history by name or rmw
+    enum value, depth), e.g. one of a topic's offered_qos_profiles, or messages.topic_qos().
+
+    A setting it lacks takes the one of `default` (a complete, usable description). History unknown with depth 0,
+    what rosbag2 records for the publishers it discovers, takes the default history and depth too. Any other
+    setting that cannot be used (malformed, system default or unknown, depth 0 with keep_last) takes the default
+    as well, and is described in `unusable`."""
+    if profile.get("history") in _UNKNOWN_HISTORY and profile.get("depth") == 0:
+        # The middleware does not say: the default keep_last depth is meant, not a problem to report on every
+        # topic of every such bag.
+        profile = {k: v for k, v in profile.items() if k not in ("history", "depth")}
+    problems = [] if unusable is None else unusable
+
+    def setting(name, table):
+        value = profile.get(name, default[name])
+        # bool is an int to Python (True would read as enum value 1); a list or mapping is not hashable
+        if isinstance(value, (str, int)) and not isinstance(value, bool) and value in table:
+            return table[value]
+        problems.append(f"{name} {value!r}")
+        return table[default[name]]
+
+    reliability, durability = setting("reliability", _RELIABILITY), setting("durability", _DURABILITY)
+    history, depth = setting("history", _HISTORY), profile.get("depth", default["depth"])
+    if not (isinstance(depth, int) and not isinstance(depth, bool) and 0 < depth <= MAX_QOS_DEPTH):
+        if history == HistoryPolicy.KEEP_LAST:  # keep_all has no use for a depth
+            problems.append(f"depth {depth!r}")
+        depth = default["depth"]
+    return QoSProfile(reliability=reliability, durability=durability, history=history, depth=depth)

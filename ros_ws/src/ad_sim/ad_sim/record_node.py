@@ -4,9 +4,10 @@ Subscribes raw (CDR bytes, no deserialisation) with KEEP_ALL history and the pub
 reliability and durability (transient local for /ad_sim/instance), discovering topics as
 they appear: by default every simulator topic under topic_prefix (any number of views),
 or the `topics` parameter. Log time of a message is its header stamp (simulated time, so a
-recording made at any speed equals `generate`'s bag) unless stamp_source is "receive";
+recording made at any speed equals `generate`'s bag) unless stamp_source is "receive" or the
+stamp cannot be a log time (negative, or nanosec >= 1e9: then the receive time, with a warning);
 publish time is always the receive wall time. SIGINT/SIGTERM finalise the bag after taking what
-already arrived (for at most 2 s; a second signal skips that); a kill -9
+already arrived (for at most 2 s; a second signal skips that), and so does an error; a kill -9
 leaves every flushed chunk readable (chunks are flushed every flush_period seconds).
 """
 
@@ -28,8 +29,8 @@ from rclpy.signals import SignalHandlerOptions
 
 from . import messages
 from .rosbag import BagError, BagWriter, header_stamp_ns, load_schema, qos_profile, starts_with_header
-from .dds import declare_parameters, number
-from .sim_node import handle_help, import_message_class
+from .dds import declare_parameters, message_class, number
+from .sim_node import handle_help
 
 DRAIN_IDLE = 0.3  # s without incoming work after a stop signal before the bag is closed
 DRAIN_MAX = 2.0  # s at most of that draining: a topic that keeps publishing must not hold the stop off
@@ -115,7 +116,7 @@ class RecordNode(Node):
     def _subscribe(self, topic: str, type_name: str, publishers) -> None:
         # Both can fail (no definition or typesupport here): before the topic enters the bag.
         schema = load_schema(type_name)
-        message_class = import_message_class(type_name)
+        subscribed_class = message_class(type_name)
         use_header = self.stamp_source == "header" and starts_with_header(schema.definition)
         # Like rosbag2: offer what every publisher can match, with a history that never drops.
         reliable = all(info.qos_profile.reliability == ReliabilityPolicy.RELIABLE for info in publishers)
@@ -128,10 +129,21 @@ class RecordNode(Node):
         self.writer.add_topic(topic, type_name, [offered_qos(info.qos_profile) for info in publishers], schema)
         self.received[topic] = self.written[topic] = 0
 
+        unusable_stamp_warned = False
+
         def on_message(data: bytes) -> None:
+            nonlocal unusable_stamp_warned
             received_ns = time.time_ns()
             self.received[topic] += 1
-            log_time = header_stamp_ns(data) if use_header else received_ns
+            log_time = received_ns
+            if use_header:
+                try:
+                    log_time = header_stamp_ns(data)
+                except ValueError as exc:  # recorded all the same: a bag loses no message a publisher sent
+                    if not unusable_stamp_warned:
+                        self.get_logger().warning(f"{topic}: {exc}; recording it, and any later such message on "
+                                                  "the topic, at its receive time")
+                        unusable_stamp_warned = True
             try:
                 self.writer.write(topic, log_time, data, publish_time_ns=received_ns)
             except (BagError, OSError) as exc:  # e.g. a full disk: keep counting, say why it is lost
@@ -141,7 +153,7 @@ class RecordNode(Node):
             self._unflushed = True
 
         self.subscriptions_by_topic[topic] = self.create_subscription(
-            message_class, topic, on_message, qos, raw=True
+            subscribed_class, topic, on_message, qos, raw=True
         )
         self.get_logger().info(f"subscribed to {topic} [{type_name}]")
 
@@ -173,18 +185,20 @@ def main(args: list[str] | None = None) -> None:
     node = None
     try:
         node = RecordNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.1)
-        # Take what already arrived before closing the bag.
-        idle_since, seen = time.monotonic(), sum(node.received.values())
-        give_up = idle_since + DRAIN_MAX
-        while time.monotonic() - idle_since < DRAIN_IDLE and time.monotonic() < give_up and not stop_now.is_set():
-            executor.spin_once(timeout_sec=0.05)
-            if sum(node.received.values()) != seen:
-                idle_since, seen = time.monotonic(), sum(node.received.values())
-        node.close()
+        try:
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            while not stop.is_set():
+                executor.spin_once(timeout_sec=0.1)
+            # Take what already arrived before closing the bag.
+            idle_since, seen = time.monotonic(), sum(node.received.values())
+            give_up = idle_since + DRAIN_MAX
+            while time.monotonic() - idle_since < DRAIN_IDLE and time.monotonic() < give_up and not stop_now.is_set():
+                executor.spin_once(timeout_sec=0.05)
+                if sum(node.received.values()) != seen:
+                    idle_since, seen = time.monotonic(), sum(node.received.values())
+        finally:  # after an error too: closing writes the chunk in memory and the summaries readers need
+            node.close()
     except (ValueError, ParameterException) as exc:  # bad parameters (a BagError is a ValueError)
         print(f"ad_sim record: {exc}")
         raise SystemExit(2) from None

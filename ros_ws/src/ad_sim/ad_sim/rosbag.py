@@ -63,6 +63,7 @@ _PRIMITIVE_TYPES = frozenset(
 # Field types in a .msg text ("pkg/Type" in "pkg/Type[] name"), as rosbag2 finds them.
 _MSG_FIELD_TYPE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+")
 MIN_SPLIT_SIZE = 64 * 1024  # smallest max_bag_size: a split file holds at least one chunk's worth
+MAX_MCAP_TIME = 2**64 - 1  # MCAP times are unsigned 64-bit nanoseconds
 
 
 class BagError(ValueError):
@@ -99,7 +100,8 @@ class MessageSchema:
     type_hash: str  # "RIHS01_..." (empty if unknown)
 
 
-def _split_type(type_name: str) -> tuple[str, str, str]:
+def split_type(type_name: str) -> tuple[str, str, str]:
+    """'pkg/msg/Type' (or 'pkg/Type') -> (package, namespace, name)."""
     parts = type_name.split("/")
     if len(parts) == 2:
         return parts[0], "msg", parts[1]
@@ -116,7 +118,7 @@ def ament_prefixes() -> list[Path]:
 
 
 def _interface_file(type_name: str, suffix: str, prefixes: Iterable[Path]) -> Path:
-    package, namespace, name = _split_type(type_name)
+    package, namespace, name = split_type(type_name)
     searched = []
     for prefix in prefixes:
         candidate = Path(prefix) / "share" / package / namespace / f"{name}{suffix}"
@@ -159,7 +161,7 @@ def build_message_definition(type_name: str, prefixes: Iterable[Path] | None = N
 def installed_type_hash(type_name: str, prefixes: Iterable[Path] | None = None) -> str:
     """The RIHS01 hash that rosidl generated for `type_name` (share/<pkg>/msg/<Type>.json)."""
     prefixes = list(ament_prefixes() if prefixes is None else prefixes)
-    package, namespace, name = _split_type(type_name)
+    package, namespace, name = split_type(type_name)
     path = _interface_file(type_name, ".json", prefixes)
     full_name = f"{package}/{namespace}/{name}"
     for entry in json.loads(path.read_text())["type_hashes"]:
@@ -169,7 +171,7 @@ def installed_type_hash(type_name: str, prefixes: Iterable[Path] | None = None) 
 
 
 def _vendored_file(type_name: str) -> Path:
-    package, _, name = _split_type(type_name)
+    package, _, name = split_type(type_name)
     return SCHEMA_DIR / f"{package}__{name}.msg"
 
 
@@ -191,7 +193,7 @@ def vendor_schemas(out_dir: Path = SCHEMA_DIR, prefixes: Iterable[Path] | None =
 
 def load_schema(type_name: str) -> MessageSchema:
     """Schema of `type_name`: vendored for the simulator types, else from the ROS install."""
-    package, namespace, name = _split_type(type_name)
+    package, namespace, name = split_type(type_name)
     full_name = f"{package}/{namespace}/{name}"
     if full_name in VENDORED_TYPES:
         hashes = json.loads((SCHEMA_DIR / TYPE_HASHES_FILE).read_text())
@@ -209,8 +211,14 @@ def starts_with_header(definition: str) -> bool:
 
 
 def header_stamp_ns(cdr: bytes) -> int:
-    """Stamp of a CDR message whose first field is std_msgs/Header (after the 4-byte encapsulation)."""
-    sec, nanosec = struct.unpack_from("<iI" if cdr[1] == 1 else ">iI", cdr, 4)
+    """Stamp of a CDR message whose first field is std_msgs/Header (after the 4-byte encapsulation).
+    ValueError if it cannot be a log time: MCAP's are unsigned, and a nanosec of 1e9 or more is no time."""
+    try:
+        sec, nanosec = struct.unpack_from("<iI" if cdr[1] == 1 else ">iI", cdr, 4)
+    except (IndexError, struct.error):  # raw bytes from a publisher, not checked against the type
+        raise ValueError(f"a message of {len(cdr)} bytes is too short to hold a header stamp") from None
+    if sec < 0 or nanosec >= 1_000_000_000:
+        raise ValueError(f"header stamp {sec} s {nanosec} ns cannot be a log time (negative, or nanosec >= 1e9)")
     return sec * 1_000_000_000 + nanosec
 
 
@@ -239,6 +247,21 @@ def qos_profile(
         "liveliness_lease_duration": dict(liveliness_lease_duration or INFINITE_DURATION),
         "avoid_ros_namespace_conventions": False,
     }
+
+
+def parse_offered_qos_profiles(value: Any) -> list[dict]:
+    """A topic's offered_qos_profiles from metadata.yaml: a list of profiles, or the YAML string holding one that
+    rosbag2 wrote before format 9; [] if there are none. ValueError with a one-line reason if it is unusable."""
+    if isinstance(value, str):
+        try:
+            value = yaml.safe_load(value)
+        except yaml.YAMLError as exc:  # its own message runs over several lines
+            raise ValueError(f"not YAML ({getattr(exc, 'problem', None) or type(exc).__name__})") from None
+    if not value:
+        return []
+    if not (isinstance(value, list) and all(isinstance(profile, dict) for profile in value)):
+        raise ValueError(f"not a list of profiles ({value!r:.60})")
+    return value
 
 
 def _dump_yaml(data: Any) -> str:
@@ -364,14 +387,19 @@ class BagWriter:
         info = self._topics.get(topic)
         if info is None:
             raise BagError(f"topic {topic} was not added to bag {self.path}; call add_topic() first")
+        log_time_ns = int(log_time_ns)
+        publish_time_ns = log_time_ns if publish_time_ns is None else int(publish_time_ns)
+        # Checked first: the MCAP writer keeps a time in its statistics before it fails on it, and fails again at close.
+        if not (0 <= log_time_ns <= MAX_MCAP_TIME and 0 <= publish_time_ns <= MAX_MCAP_TIME):
+            raise BagError(f"log time {log_time_ns} ns or publish time {publish_time_ns} ns of a message on {topic} is "
+                           f"not an MCAP time (0 to {MAX_MCAP_TIME} ns)")
         if not isinstance(message, (bytes, bytearray, memoryview)):
             message = self._encode(info.schema, message)
-        log_time_ns = int(log_time_ns)
         self._mcap.add_message(
             channel_id=self._channel_ids[topic],
             log_time=log_time_ns,
             data=bytes(message),
-            publish_time=log_time_ns if publish_time_ns is None else int(publish_time_ns),
+            publish_time=publish_time_ns,
             sequence=info.message_count,
         )
         info.message_count += 1
@@ -931,7 +959,8 @@ def repair(source: str | os.PathLike, out: str | os.PathLike, compression: str =
     """Rewrites what is readable of a damaged bag (a killed recorder's, a corrupt copy) as a complete
     one at `out`: every file with its summary, metadata.yaml with the true counts, so that other
     readers (ros2 bag, rosbags, Foxglove) take it. Topics keep their type and the offered QoS that
-    the source's metadata.yaml lists; publish times become log times. What could not be read is
+    the source's metadata.yaml lists (the default profile, with a warning, where those are unusable);
+    publish times become log times. What could not be read is
     warned about, as BagReader(recover=True) does (an unusable metadata.yaml included: the .mcap
     files beside it are read). Returns the number of messages written; BagUnreadable, and no `out`
     left behind, if nothing is readable."""
@@ -957,9 +986,12 @@ def repair(source: str | os.PathLike, out: str | os.PathLike, compression: str =
     try:
         with writer:
             for topic, type_name in reader.topics().items():
-                qos = listed.get(topic, {}).get("offered_qos_profiles")
-                if isinstance(qos, str):  # rosbag2 before format 9 kept them as a YAML string
-                    qos = yaml.safe_load(qos)
+                try:
+                    qos = parse_offered_qos_profiles(listed.get(topic, {}).get("offered_qos_profiles"))
+                except ValueError as exc:  # the messages matter more than how they were offered
+                    warnings.warn(f"{reader.path / METADATA_FILE}: unusable offered_qos_profiles for {topic}: {exc}; "
+                                  "the repaired bag lists the default profile for it")
+                    qos = []
                 writer.add_topic(topic, type_name, qos or None)
             for message in reader:
                 writer.write(message.topic, message.log_time_ns, message.message)

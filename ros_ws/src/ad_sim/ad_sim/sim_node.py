@@ -33,23 +33,16 @@ from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
 from . import materials, messages
-from .dds import MAX_QOS_DEPTH, declare_parameters, non_ros_args, number, use_fast_heartbeat
+from .dds import MAX_QOS_DEPTH, declare_parameters, message_class, non_ros_args, number, qos_from_profile, use_fast_heartbeat
 
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
 ACK_SLICE = 0.1  # s between looks at the stop flag while waiting for acknowledgements
 WORKER_JOIN_TIMEOUT = 10.0  # s; a stopped worker ends within one simulated frame, well under this
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
-
-
-def import_message_class(type_name: str):
-    """rclpy message class of 'pkg/msg/Type'."""
-    package, namespace, name = type_name.split("/")
-    return getattr(importlib.import_module(f"{package}.{namespace}"), name)
 
 
 def _element_class(message, field_name: str):
@@ -75,17 +68,7 @@ def fill_message(message, data: dict):
 
 
 def to_ros_message(type_name: str, data: dict):
-    return fill_message(import_message_class(type_name)(), data)
-
-
-def ros_qos(qos: dict) -> QoSProfile:
-    """rclpy QoSProfile of a messages.topic_qos() description."""
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_ALL if qos["history"] == "keep_all" else HistoryPolicy.KEEP_LAST,
-        depth=qos["depth"],
-        reliability=ReliabilityPolicy.RELIABLE if qos["reliability"] == "reliable" else ReliabilityPolicy.BEST_EFFORT,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL if qos["durability"] == "transient_local" else DurabilityPolicy.VOLATILE,
-    )
+    return fill_message(message_class(type_name)(), data)
 
 
 class SimPublishers:
@@ -98,8 +81,9 @@ class SimPublishers:
         self.stop = stop or threading.Event()  # once set, nobody waits for acknowledgements (a stopping node)
         self.by_topic = {}
         for topic, type_name in messages.topic_types(views, prefix).items():
-            qos = ros_qos(dict(messages.topic_qos(topic, prefix), depth=depth))
-            self.by_topic[topic] = (type_name, node.create_publisher(import_message_class(type_name), topic, qos))
+            # what the simulator offers on the topic, with this node's depth
+            qos = qos_from_profile({"depth": depth}, default=messages.topic_qos(topic, prefix))
+            self.by_topic[topic] = (type_name, node.create_publisher(message_class(type_name), topic, qos))
         self.unacknowledged = dict.fromkeys(self.by_topic, 0)
         self.published = 0
 
