@@ -123,8 +123,8 @@ class Replayer:
                 due = start_wall + (log_time - start_log) / 1e9 / rate
                 while (delay := due - time.monotonic()) > 0:
                     time.sleep(min(delay, MAX_SLEEP_S))
-                if not rclpy.ok(context=self.node.context):
-                    break
+                if not rclpy.ok(context=self.node.context):  # a signal (SIGTERM) shut ROS down: stopped, not done
+                    raise ExternalShutdownException
                 if self.clock is not None and log_time != self.last_clock:  # the time first, then what happened at it
                     self.clock.publish(Clock(clock=Time(sec=log_time // 10**9, nanosec=log_time % 10**9)))
                     self.last_clock = log_time
@@ -207,13 +207,14 @@ def main(args=None) -> int:
             f"stopped after {messages_published(replayer, options.loop)} from {options.bag}: "
         print(f"replay: {stopped}{exc}", file=sys.stderr)
         return 1
-    except (KeyboardInterrupt, ExternalShutdownException):  # stopping a replay early is a normal way to end it
+    except (KeyboardInterrupt, ExternalShutdownException, RCLError) as exc:
+        # Stopping a replay early is a normal way to end it; an RCLError is one too once a signal (SIGTERM, or
+        # SIGINT without Python's handler) has shut the context down under a publish or the wait for acks.
+        if isinstance(exc, RCLError) and rclpy.ok():
+            raise
         if replayer is not None:
             print(f"replay: stopped after {messages_published(replayer, options.loop)} from {options.bag}",
                   file=sys.stderr)
-    except RCLError:
-        if rclpy.ok():
-            raise
     finally:
         if node is not None:
             node.destroy_node()
