@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from ad_estimator.cli import write_text_staged
 from ad_estimator.metrics import Predictions, compute_metrics, format_table, json_text
+from ad_sim import families
 from ad_sim.instances import Instance, benchmark
 from ad_sim.materials import FAMILIES, FAMILY_RANGES, PARAMETER_NAMES, SAMPLED_PARAMETERS
 from ad_sim.mpm import check_device
@@ -36,25 +37,11 @@ from training.resim_psnr import FIT_VIEW, check_json_out, format_psnr, observed_
 
 log = logging.getLogger(__name__)
 
-def to_unit(family: str, parameters: dict[str, float]) -> np.ndarray:
-    """The family's sampled parameters (SI) -> [0, 1]^d over its own sampling ranges (log for E, yield)."""
-    out = []
-    for name in SAMPLED_PARAMETERS[family]:
-        low, high, scale = FAMILY_RANGES[family][name]
-        value = parameters[name]
-        out.append(math.log(value / low) / math.log(high / low) if scale == "log" else (value - low) / (high - low))
-    return np.array(out)
-
-
 def from_unit(family: str, unit) -> dict[str, float]:
-    """Inverse of to_unit: a point of [0, 1]^d -> the family's sampled parameters (SI).
-
-    Coordinates beyond the family's parameters are ignored."""
-    out = {}
-    for name, u in zip(SAMPLED_PARAMETERS[family], np.asarray(unit, dtype=np.float64)):
-        low, high, scale = FAMILY_RANGES[family][name]
-        out[name] = float(low * (high / low) ** u if scale == "log" else low + u * (high - low))
-    return out
+    """A point of [0, 1]^d, where CMA-ES searches -> the family's sampled parameters (SI) over its own sampling
+    ranges (log space for E and yield). Coordinates beyond the family's parameters are ignored."""
+    return {name: families.from_unit(u, *FAMILY_RANGES[family][name])
+            for name, u in zip(SAMPLED_PARAMETERS[family], np.asarray(unit, dtype=np.float64))}
 
 
 @dataclass

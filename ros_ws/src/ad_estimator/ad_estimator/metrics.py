@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ad_sim.families import FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS
+from ad_sim.families import FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS, to_unit
 
 #: The temporal out-of-distribution rows: only the first K frames are observed.
 TEMPORAL_OOD_FRAMES = (24, 22, 18, 15)
@@ -135,10 +135,8 @@ def in_metric_order(rows, parameter_names) -> np.ndarray:
 
 
 def _normalise(values: np.ndarray, lo: float, hi: float, scale: str) -> np.ndarray:
-    if scale == "log":
-        # A non-positive prediction is infinitely wrong in log space; clip to keep the mean finite.
-        return (np.log(np.clip(values, 1e-12, None)) - math.log(lo)) / (math.log(hi) - math.log(lo))
-    return (values - lo) / (hi - lo)
+    # A non-positive prediction is infinitely wrong in log space; clip to keep the mean finite.
+    return np.asarray(to_unit(np.clip(values, 1e-12, None) if scale == "log" else values, lo, hi, scale))
 
 
 def regl1(pred: Predictions) -> np.ndarray:

@@ -27,6 +27,8 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
+from ad_sim.families import from_unit
+
 from .images import DEFAULT_THRESHOLD
 
 REQUIRED_METADATA = (
@@ -114,10 +116,8 @@ class ParameterRange:
     scale: str  # "log" or "linear"
 
     def denormalise(self, u: np.ndarray) -> np.ndarray:
-        u = np.clip(u, 0.0, 1.0)  # predictions outside the prior range are not plausible values
-        if self.scale == "log":
-            return np.exp(math.log(self.low) + u * (math.log(self.high) - math.log(self.low)))
-        return self.low + u * (self.high - self.low)
+        # predictions outside the prior range are not plausible values
+        return np.asarray(from_unit(np.clip(u, 0.0, 1.0), self.low, self.high, self.scale))
 
     def sigma(self, value: np.ndarray, sigma_u: np.ndarray) -> np.ndarray:
         """One-sigma in SI from one-sigma in normalised units (delta method, first order)."""

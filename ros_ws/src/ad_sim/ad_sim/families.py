@@ -83,29 +83,32 @@ def _union_range(name: str) -> tuple[float, float, str]:
     return PARAMETER_RANGES[name]
 
 
+def to_unit(value, low: float, high: float, scale: str):
+    """A value (SI; a float or an array) -> its place in the range [low, high]: 0 at low, 1 at high, in log
+    space for scale "log"; a value outside the range maps outside [0, 1]."""
+    v = np.asarray(value, dtype=np.float64)
+    out = np.log(v / low) / math.log(high / low) if scale == "log" else (v - low) / (high - low)
+    return float(out) if out.ndim == 0 else out
+
+
+def from_unit(unit, low: float, high: float, scale: str):
+    """Inverse of to_unit."""
+    u = np.asarray(unit, dtype=np.float64)
+    out = low * (high / low) ** u if scale == "log" else low + u * (high - low)
+    return float(out) if out.ndim == 0 else out
+
+
 def normalise(name: str, value):
     """Maps a parameter (SI) to [0, 1] over its union range (log space for E and yield stress).
 
     Works on floats and numpy arrays alike; values outside the range map outside [0, 1].
     """
-    lo, hi, scale = _union_range(name)
-    v = np.asarray(value, dtype=np.float64)
-    if scale == "log":
-        out = (np.log(v) - math.log(lo)) / (math.log(hi) - math.log(lo))
-    else:
-        out = (v - lo) / (hi - lo)
-    return float(out) if out.ndim == 0 else out
+    return to_unit(value, *_union_range(name))
 
 
 def denormalise(name: str, value):
     """Inverse of normalise()."""
-    lo, hi, scale = _union_range(name)
-    v = np.asarray(value, dtype=np.float64)
-    if scale == "log":
-        out = np.exp(math.log(lo) + v * (math.log(hi) - math.log(lo)))
-    else:
-        out = lo + v * (hi - lo)
-    return float(out) if out.ndim == 0 else out
+    return from_unit(value, *_union_range(name))
 
 
 def full_parameters(family: str, parameters: dict[str, float]) -> dict[str, float]:
