@@ -220,7 +220,7 @@ def test_help_lists_the_parameters():
         assert result.returncode == 0, result.stderr
         assert f"ros2 run ad_sim {executable}" in result.stdout
         for name in parameters:
-            assert f"  {name} (default" in result.stdout
+            assert re.search(rf"^  {name} +\S+  \S", result.stdout, re.M), result.stdout  # name, default, meaning
 
 
 def test_unknown_arguments_are_a_usage_error():

@@ -14,10 +14,8 @@ Services: ~/reset (std_srvs/Trigger), ~/estimate (ad_msgs/srv/EstimateMaterial).
 """
 from __future__ import annotations
 
-import argparse
 import queue
 import sys
-import textwrap
 import threading
 import time
 from collections import deque
@@ -42,7 +40,7 @@ from ad_estimator.images import ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, TRAINED_EXTENT, Estimate, EstimatorModel, ModelError, object_extent
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
 from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
-from ad_sim.dds import declare_parameters, non_ros_args, number
+from ad_sim.dds import declare_parameters, node_cli, number
 
 LOG_THROTTLE_S = 5.0
 MAX_CLIP_FRAMES = 1000
@@ -445,22 +443,19 @@ class EstimatorNode(Node):
 
 
 def parse_cli(argv: list[str]) -> None:
-    """--help for a node whose knobs are ROS parameters (pass them after --ros-args -p name:=value)."""
-    lines = [textwrap.fill(text, width=110, initial_indent=f"  {name:20s} {default!r:>12}  ",
-                           subsequent_indent=" " * 37) for name, (default, text) in PARAMETERS.items()]
-    parser = argparse.ArgumentParser(
-        prog="ros2 run ad_estimator node", formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Online material estimation from one mask stream with an ONNX student "
-                    "(publishes ad_msgs/MaterialEstimate on /ad_estimator/estimate).",
-        epilog="ROS parameters (--ros-args -p name:=value):\n" + "\n".join(lines)
-        + f"\n\nTopics:\n  subscribes {DEFAULT_INPUT_TOPIC} (sensor_msgs/Image masks; remap the input with"
+    """--help, and usage errors for anything outside --ros-args."""
+    node_cli(
+        "ros2 run ad_estimator node",
+        "Online material estimation from one mask stream with an ONNX student "
+        "(publishes ad_msgs/MaterialEstimate on /ad_estimator/estimate).",
+        [(name, default, text) for name, (default, text) in PARAMETERS.items()], argv,
+        epilog=f"\n\nTopics:\n  subscribes {DEFAULT_INPUT_TOPIC} (sensor_msgs/Image masks; remap the input with"
         "\n             --ros-args -r mask:=/camera/mask)"
         "\n  publishes  /ad_estimator/estimate (ad_msgs/MaterialEstimate), /diagnostics (every diagnostics_period)"
         "\nServices (~/ under the node name, default ad_estimator):"
         "\n  /ad_estimator/reset     std_srvs/Trigger: forget the current episode; the next frame starts a new one"
         "\n  /ad_estimator/estimate  ad_msgs/srv/EstimateMaterial: one estimate for a clip of frames in the request"
         "\n\nExit status 1 if the model cannot be loaded.")
-    parser.parse_args(non_ros_args(parser.prog, argv)[1:])
 
 
 def make_executor(context=None) -> MultiThreadedExecutor:

@@ -54,6 +54,27 @@ def non_ros_args(prog: str, argv: list[str]) -> list[str]:
         raise SystemExit(2) from None
 
 
+def node_cli(prog: str, description: str, parameters, argv: list[str] | None, epilog: str = "") -> None:
+    """The command line of a node whose knobs are ROS parameters ((name, default, meaning) each): `--help`
+    prints the description, every parameter with its default, and `epilog`, then exits; anything else outside
+    `--ros-args ...` is a usage error (exit 2)."""
+    import argparse
+    import textwrap
+
+    from rclpy.parameter import Parameter
+
+    def shown(default) -> str:
+        return "unset" if isinstance(default, Parameter.Type) else repr(default)
+
+    name_width = max(len(name) for name, _, _ in parameters)
+    table = [textwrap.fill(meaning, width=110, initial_indent=f"  {name:{name_width}s} {shown(default):>12}  ",
+                           subsequent_indent=" " * (name_width + 17)) for name, default, meaning in parameters]
+    parser = argparse.ArgumentParser(
+        prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="ROS parameters (--ros-args -p name:=value), with their defaults:\n" + "\n".join(table) + epilog)
+    parser.parse_args(non_ros_args(prog, sys.argv if argv is None else argv)[1:])
+
+
 def declare_parameters(node, parameters) -> None:
     """Declares (name, default, meaning) parameters, read-only: they are read once, at start, so a
     change at run time (`ros2 param set`) is refused instead of accepted and ignored. Those with a

@@ -29,8 +29,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from . import messages
 from .rosbag import BagError, BagWriter, header_stamp_ns, load_schema, qos_profile, starts_with_header
-from .dds import declare_parameters, message_class, number
-from .sim_node import handle_help
+from .dds import declare_parameters, message_class, node_cli, number
 
 DRAIN_IDLE = 0.3  # s without incoming work after a stop signal before the bag is closed
 DRAIN_MAX = 2.0  # s at most of that draining: a topic that keeps publishing must not hold the stop off
@@ -173,7 +172,7 @@ class RecordNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    handle_help("ros2 run ad_sim record", __doc__, PARAMETERS, args)
+    node_cli("ros2 run ad_sim record", __doc__, PARAMETERS, args)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop, stop_now = threading.Event(), threading.Event()  # a second Ctrl-C skips the draining
 

@@ -32,11 +32,10 @@ from rclpy.duration import Duration
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
 from . import materials, messages
-from .dds import MAX_QOS_DEPTH, declare_parameters, message_class, non_ros_args, number, qos_from_profile, use_fast_heartbeat
+from .dds import MAX_QOS_DEPTH, declare_parameters, message_class, node_cli, number, qos_from_profile, use_fast_heartbeat
 
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
@@ -139,27 +138,6 @@ PARAMETERS = (
     ("qos_depth", messages.QOS_DEPTH, "keep-last depth of the publishers (the flow control window)"),
     ("wait_for_subscribers", 0, "start playing once every topic has this many subscriptions"),
 )
-
-
-def parameter_help(parameters) -> str:
-    def shown(default) -> str:
-        return "unset" if isinstance(default, Parameter.Type) else repr(default)
-
-    return "ROS parameters (--ros-args -p name:=value):\n" + "\n".join(
-        f"  {name} (default {shown(default)}): {meaning}" for name, default, meaning in parameters
-    )
-
-
-def handle_help(prog: str, doc: str, parameters, args: list[str] | None) -> None:
-    """The command line of a node whose knobs are ROS parameters: `--help` prints the description
-    and parameters and exits; anything else outside `--ros-args ...` is a usage error (exit 2)."""
-    import argparse
-    import sys
-
-    parser = argparse.ArgumentParser(
-        prog=prog, description=doc, epilog=parameter_help(parameters), formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.parse_args(non_ros_args(prog, sys.argv if args is None else args)[1:])
 
 
 class SimNode(Node):
@@ -310,7 +288,7 @@ class SimNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    handle_help("ros2 run ad_sim node", __doc__, PARAMETERS, args)
+    node_cli("ros2 run ad_sim node", __doc__, PARAMETERS, args)
     use_fast_heartbeat()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
