@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ad_estimator import metrics
+from ad_estimator.window import stamp_to_ns
 
 ROOT = Path(__file__).resolve().parents[1]
 ADRUN = ROOT / "scripts" / "adrun"
@@ -55,7 +56,7 @@ def estimate_text(estimate, truth_names) -> str:
 
 
 def stamp_ns(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
+    return stamp_to_ns(stamp.sec, stamp.nanosec)
 
 
 class Listener:

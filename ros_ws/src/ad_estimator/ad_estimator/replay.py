@@ -27,6 +27,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tqdm import tqdm
 
 from ad_estimator.cli import HelpFormatter
+from ad_estimator.window import ns_to_stamp
 from ad_sim.dds import message_class, non_ros_args, qos_from_profile, use_fast_heartbeat
 from ad_sim.rosbag import BagError, BagReader, one_line_warnings, parse_offered_qos_profiles
 
@@ -126,7 +127,8 @@ class Replayer:
                 if not rclpy.ok(context=self.node.context):  # a signal (SIGTERM) shut ROS down: stopped, not done
                     raise ExternalShutdownException
                 if self.clock is not None and log_time != self.last_clock:  # the time first, then what happened at it
-                    self.clock.publish(Clock(clock=Time(sec=log_time // 10**9, nanosec=log_time % 10**9)))
+                    sec, nanosec = ns_to_stamp(log_time)
+                    self.clock.publish(Clock(clock=Time(sec=sec, nanosec=nanosec)))
                     self.last_clock = log_time
                 self.publishers[topic].publish(bytes(data))
                 self.published += 1
