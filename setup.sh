@@ -27,6 +27,10 @@ die() { printf '\nsetup.sh: error: %s\n' "$*" >&2; exit 1; }
 stamp_matches() { [ "$AD_FORCE" != 1 ] && [ -f "$1" ] && [ "$(cat "$1")" = "$2" ]; }
 
 START=$SECONDS
+case "$ROOT$VENV" in
+    *[[:space:]]*)  # colcon's generated setup scripts run the build's Python by an unquoted path
+        die "a space in the checkout's or the venv's path ($ROOT, $VENV), which colcon's setup scripts cannot take: clone or move the checkout to a path without spaces" ;;
+esac
 
 # One setup at a time per checkout: concurrent runs would install and build over each other.
 mkdir -p "$WS/log"
@@ -34,12 +38,20 @@ exec 9> "$WS/log/.setup.lock"
 if command -v flock >/dev/null; then flock 9; fi
 
 # 1. Virtual environment --------------------------------------------------------------------
+# A venv made at another path (a moved checkout) has scripts that name that path: it is made anew.
+if [ -x "$VENV/bin/python" ] && ! grep -qxF "VIRTUAL_ENV=\"$VENV\"" "$VENV/bin/activate" 2>/dev/null; then
+    step "$VENV was made at another path (moved?): making it anew"
+    rm -rf "$VENV"
+fi
 if [ ! -x "$VENV/bin/python" ]; then
     step "creating virtual environment $VENV ($PYTHON)"
     command -v "$PYTHON" >/dev/null || die "$PYTHON not found: install Python 3.11 or set PYTHON=/path/to/python3.11"
     "$PYTHON" -m venv "$VENV" || die "$PYTHON -m venv $VENV failed: is the venv module installed (Debian: python3.11-venv)?"
 fi
 VENV_PY="$VENV/bin/python"
+# A venv whose creation was cut short (or made without pip) has no pip: give it one.
+"$VENV_PY" -m pip --version >/dev/null 2>&1 || "$VENV_PY" -m ensurepip --upgrade >/dev/null \
+    || die "$VENV has no pip and ensurepip failed: remove $VENV and run setup.sh again"
 "$VENV_PY" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' \
     || die "$VENV_PY does not run Python 3.11 (the ROS 2 Jazzy wheels are cp311): remove $VENV, or set PYTHON=/path/to/python3.11 or VENV=elsewhere"
 mkdir -p "$STAMP_DIR"
@@ -109,6 +121,13 @@ all_installed() {
         [ -d "$WS/install/$(basename "$(dirname "$package_xml")")" ] || return 1
     done
 }
+# A build tree from another checkout (moved, or copied in) cannot be built on: CMake refuses its cache,
+# and colcon would install into the other checkout.
+if [ -f "$WS/build/ad_msgs/CMakeCache.txt" ] \
+        && ! grep -qxF "CMAKE_CACHEFILE_DIR:INTERNAL=$WS/build/ad_msgs" "$WS/build/ad_msgs/CMakeCache.txt"; then
+    step "ros_ws/build was made in another checkout: removing ros_ws/build and ros_ws/install"
+    rm -rf "$WS/build" "$WS/install"
+fi
 if stamp_matches "$BUILD_STAMP" "$FINGERPRINT" && all_installed; then
     skip "ros_ws build"
 else
@@ -119,7 +138,7 @@ else
         unset PYTHONPATH COLCON_PREFIX_PATH
         export PATH="$VENV/bin:$PATH" AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV"
         export LD_LIBRARY_PATH="$ROS_LIBS" _ROS_WHEELS_BOOTSTRAP_COMPLETE=1
-        "$VENV/bin/colcon" build --symlink-install \
+        "$VENV_PY" -m colcon build --symlink-install \
             --event-handlers console_cohesion+ desktop_notification- status- \
             --cmake-args -DPython3_EXECUTABLE="$VENV_PY" -DCMAKE_BUILD_TYPE=Release
     ) > "$BUILD_LOG" 2>&1 || { tail -n 60 "$BUILD_LOG" >&2; die "colcon build failed (full log: $BUILD_LOG)"; }
@@ -131,7 +150,7 @@ echo "$VENV" > "$WS/install/.ad-venv"  # env.sh activates the venv the workspace
 cat <<EOF
 
 Setup complete in $((SECONDS - START)) s.
-  environment:  source $ROOT/env.sh
+  environment:  source "$ROOT/env.sh"
   run:          $ROOT/scripts/adrun <package> <executable> [args]   (e.g. scripts/adrun ad_sim node)
   tests:        $ROOT/scripts/test.sh
 EOF

@@ -1,15 +1,13 @@
 #!/usr/bin/env bash
 # The README's main job: set up (idempotent, quick when nothing changed), then the simulator feeding
 # the estimator with the bundled model on unseen shapes, each estimate printed beside its ground
-# truth (scripts/demo.py; arguments go there, e.g. --episodes 3 or --help).
+# truth (scripts/demo.py; arguments go there, e.g. --episodes 3 or --help). It stays in the caller's
+# directory, so that relative paths in the arguments (--model, --logs) mean what the caller meant.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-cd "$ROOT"
 case " $* " in
-  *" -h "*|*" --help "*) [[ -x .venv/bin/python ]] || ./setup.sh ;;  # help needs the environment, not a re-check
-  *) ./setup.sh ;;
+  *" -h "*|*" --help "*) [[ -x "$ROOT/.venv/bin/python" ]] || "$ROOT/setup.sh" ;;  # help needs the environment, not a re-check
+  *) "$ROOT/setup.sh" ;;
 esac
-set +u  # the venv's and colcon's setup scripts read unset variables
-. ./env.sh
-set -u
-exec python scripts/demo.py "$@"
+. "$ROOT/env.sh"
+exec python "$ROOT/scripts/demo.py" "$@"

@@ -7,9 +7,7 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 
 ./setup.sh
-set +u  # the venv's and colcon's setup scripts read unset variables
 . ./env.sh
-set -u
 
 # A ROS domain of its own for each run and discovery on this machine only, so that concurrent runs
 # and other hosts never cross-talk (tests/conftest.py gives each test the next domain from here).

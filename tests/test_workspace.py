@@ -376,6 +376,40 @@ def test_setup_rerun_skips_everything():
     assert elapsed < 30, f"a re-run took {elapsed:.1f} s"
 
 
+def test_setup_refuses_a_path_with_a_space_before_doing_anything(tmp_path):
+    """colcon's generated setup scripts cannot take such a path: setup.sh finished "complete", and then every
+    command that sources env.sh failed (exit 127)."""
+    checkout = tmp_path / "my checkout"
+    checkout.mkdir()
+    (checkout / "setup.sh").write_bytes((REPO_ROOT / "setup.sh").read_bytes())
+    result = run(["bash", str(checkout / "setup.sh")], timeout=60)
+    assert result.returncode == 1 and "a space in the checkout's or the venv's path" in result.stderr, result.stderr
+    assert sorted(p.name for p in checkout.iterdir()) == ["setup.sh"]  # no venv, no build
+
+
+def test_env_sh_in_a_shell_with_set_u_and_with_a_broken_venv():
+    """Sourced under `set -u`, colcon's setup.bash killed the calling shell (COLCON_TRACE unbound); with a venv
+    that is gone, env.sh returned 0 and left the system Python."""
+    env = {k: v for k, v in os.environ.items() if k != "VENV"}
+    sourced = run(["bash", "-c", f'set -u; source "{REPO_ROOT}/env.sh"; case $- in *u*) echo still-u;; esac; '
+                                 'python -c "import ad_msgs, sys; print(sys.prefix)"'], env=env, timeout=60)
+    venv = (INSTALL / ".ad-venv").read_text().strip()  # the venv the workspace was built with
+    assert sourced.returncode == 0 and sourced.stdout.split() == ["still-u", venv], sourced
+    broken = run(["bash", "-c", f'source "{REPO_ROOT}/env.sh"; echo "rc=$?"'], env={**env, "VENV": "/nonexistent"},
+                 timeout=60)
+    assert broken.stdout.strip() == "rc=1", broken
+    assert "env.sh: the environment is incomplete (venv /nonexistent): run" in broken.stderr, broken
+
+
+def test_run_demo_takes_relative_paths_from_the_callers_directory(tmp_path, ros_domain_id):
+    """run_demo.sh changed to the checkout first: `--logs mylogs` went into the checkout, and a relative
+    --model was not found."""
+    result = run([str(REPO_ROOT / "run_demo.sh"), "--episodes", "1", "--logs", "mylogs"], cwd=tmp_path, timeout=300)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+    assert sorted(p.name for p in (tmp_path / "mylogs").iterdir()) == ["estimator.log", "simulator.log"]
+    assert not (REPO_ROOT / "mylogs").exists()
+
+
 def _third_party_imports(package_dir: Path) -> set[str]:
     """Top-level modules a package imports (at module level or inside functions), stdlib excluded."""
     names = set()
