@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ad_estimator.cli import positive
+from ad_estimator.cli import count, positive
 
 FRAME_COUNT = 25
 
@@ -36,14 +36,20 @@ def percentiles(seconds) -> dict:
             "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "max_ms": float(a.max())}
 
 
-def json_out(text: str) -> Path:
-    """argparse type of --json: a file whose folder exists, checked before the run rather than after it."""
+def output_file(text: str, example: str = "figures.json") -> Path:
+    """An output file whose folder exists (argparse.ArgumentTypeError otherwise), checked before the run rather
+    than after it; `example` is the file name the message suggests for a folder."""
     path = Path(text)
     if path.is_dir():
-        raise argparse.ArgumentTypeError(f"{text} is a folder; give a file name, e.g. {path / 'figures.json'}")
+        raise argparse.ArgumentTypeError(f"{text} is a folder; give a file name, e.g. {path / example}")
     if not path.parent.is_dir():
         raise argparse.ArgumentTypeError(f"the folder {path.parent} does not exist")
     return path
+
+
+def json_out(text: str) -> Path:
+    """argparse type of --json: a file whose folder exists, checked before the run rather than after it."""
+    return output_file(text, "figures.json")
 
 
 def quiet_warp() -> None:
@@ -78,5 +84,5 @@ def add_unseen_draw_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--instances", type=positive, default=4, help="unseen instances per family")
     parser.add_argument("--size", default="paper", choices=("tiny", "small", "paper"),
                         help="benchmark the instances are drawn from")
-    parser.add_argument("--seed", type=int, default=0, help="which instances are drawn")
+    parser.add_argument("--seed", type=count, default=0, help="which instances are drawn")
     parser.add_argument("--json", type=json_out, help="also write the figures here")

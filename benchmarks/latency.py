@@ -32,12 +32,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "ros_ws" / "src" / "ad_sim")]
 
-from ad_estimator.cli import HelpFormatter, positive  # noqa: E402
+from ad_estimator.cli import HelpFormatter, positive, positive_number  # noqa: E402
 from ad_estimator.images import MAX_IMAGE_PIXELS, ImageRejected, image_to_mask  # noqa: E402
 from ad_estimator.model import BUNDLED_MODEL, PROVIDERS, EstimatorModel  # noqa: E402
 from ad_estimator.parameters import PARAMETERS as NODE  # noqa: E402
 from ad_estimator.window import FrameWindow  # noqa: E402
-from ad_sim.rosbag import BagError  # noqa: E402
+from ad_sim.rosbag import BagError, one_line_warnings  # noqa: E402
 from common import falling_disc_clips, json_out, load_model, percentiles  # noqa: E402  (benchmarks/, the script's folder)
 
 TOPIC = "/latency_benchmark/mask"
@@ -45,13 +45,15 @@ FRAME_NS = 25_000_000
 EPISODE_NS = 1_500_000_000
 
 
-def episode_masks(bag: Path | None, count: int) -> list[np.ndarray]:
+def episode_masks(bag: Path | None, count: int, recover: bool = False) -> list[np.ndarray]:
     """Mask clips (25, H, W) uint8: from a bag's first camera if given (its levels as recorded, so a grey-mask
-    bag stays grey; the estimator converts them as the node does), else a synthetic falling disc."""
+    bag stays grey; the estimator converts them as the node does), else a synthetic falling disc.
+    `recover`: read what is readable of a damaged bag (a killed recorder's), with a warning."""
     if bag is None:
         return list(falling_disc_clips(count))
     from ad_estimator.evaluate import episode_frames
-    clips = [np.stack([image_to_mask(m, MAX_IMAGE_PIXELS, None) for _, m in frames]) for _, frames in episode_frames(bag)]
+    clips = [np.stack([image_to_mask(m, MAX_IMAGE_PIXELS, None) for _, m in frames])
+             for _, frames in episode_frames(bag, recover=recover)]
     if not clips:
         raise ValueError(f"{bag} holds no episode with mask frames (recorded from the simulator?)")
     return [clips[i % len(clips)] for i in range(count)]
@@ -68,7 +70,7 @@ class FakeImage:
 
 def run_no_ros(args, model: EstimatorModel) -> dict:
     latencies, model_times = [], []
-    for clip in episode_masks(args.bag, args.episodes):
+    for clip in episode_masks(args.bag, args.episodes, args.recover):
         window = FrameWindow(model.info.frame_interval, model.info.frame_count, policy=args.policy,
                              every_n=args.every_n, min_frames=args.min_frames, history=model.info.previous_frames)
         for k, mask in enumerate(clip):
@@ -106,7 +108,7 @@ def publish_frames(args) -> None:
         time.sleep(0.01)
     time.sleep(0.5)
     sent = {}
-    for e, clip in enumerate(episode_masks(args.bag, args.episodes)):
+    for e, clip in enumerate(episode_masks(args.bag, args.episodes, args.recover)):
         start = time.monotonic()
         for k, mask in enumerate(clip):
             target = start + k * 0.025 / args.rate
@@ -133,12 +135,14 @@ def run_ros(args) -> dict:
     from ad_estimator.node import GIL_SWITCH_INTERVAL_S, EstimatorNode, make_executor
 
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # as the node's main() does
-    rclpy.init()
+    # The node's INFO lines (one per episode) would mix into the figures' output: warnings and errors only.
+    # A log level is a global ROS argument, read by rclpy.init; a node's own cli_args leave logging as it is.
+    rclpy.init(args=["latency", "--ros-args", "--log-level", "warn"])
     node = EstimatorNode(parameter_overrides=[
         Parameter("model_path", value=str(args.model)), Parameter("threads", value=args.threads),
         Parameter("output_policy", value=args.policy), Parameter("every_n", value=args.every_n),
         Parameter("min_frames", value=args.min_frames), Parameter("queue_size", value=64)],
-        cli_args=["--ros-args", "-r", f"mask:={TOPIC}", "--log-level", "warn"])
+        cli_args=["--ros-args", "-r", f"mask:={TOPIC}"])
     received = {}
     listener = rclpy.create_node("latency_benchmark_listener")
     listener.create_subscription(
@@ -152,7 +156,7 @@ def run_ros(args) -> dict:
     spinner.start()
     command = [sys.executable, __file__, "--publish", "--episodes", str(args.episodes), "--rate", str(args.rate)]
     if args.bag:
-        command += ["--bag", str(args.bag)]
+        command += ["--bag", str(args.bag)] + (["--recover"] if args.recover else [])
     camera = subprocess.run(command, capture_output=True, text=True, env=os.environ, timeout=600)
     if camera.returncode != 0:
         raise SystemExit(f"publisher failed:\n{camera.stderr}")
@@ -176,6 +180,8 @@ def main(argv=None) -> int:
                                      epilog="Target: p50 < 3.83 ms on a 2-core CPU with the streaming student.")
     parser.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: bundled)")
     parser.add_argument("--bag", type=Path, default=None, help="take masks from this bag (default: synthetic)")
+    parser.add_argument("--recover", action="store_true",
+                        help="--bag: read what is readable of a damaged bag (a killed recorder's), with a warning")
     parser.add_argument("--episodes", type=positive, default=20, help="episodes of 25 frames")
     parser.add_argument("--policy", choices=["anytime", "episode"], default="anytime",
                         help="output policy (the node's output_policy; default: anytime, which with the defaults "
@@ -189,7 +195,8 @@ def main(argv=None) -> int:
     parser.add_argument("--min-frames", type=positive, default=1,
                         help="anytime: frames before the first estimate "
                              f"(default: 1, from frame 1; the node's: {NODE['min_frames'][0]})")
-    parser.add_argument("--rate", type=float, default=1.0, help="publishing speed factor (ROS mode)")
+    parser.add_argument("--rate", type=positive_number, default=1.0,
+                        help="publishing speed factor (ROS mode): frames at 40 fps x RATE")
     parser.add_argument("--threads", type=positive, default=1, help="onnxruntime intra-op threads")
     parser.add_argument("--provider", choices=sorted(PROVIDERS), default="cpu",
                         help="onnxruntime execution provider (cuda needs onnxruntime-gpu; ROS mode: cpu only)")
@@ -197,6 +204,9 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=json_out, default=None, help="also write the figures here")
     parser.add_argument("--publish", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    one_line_warnings()  # the bag reader's warnings (--recover) as one line each
+    if args.recover and args.bag is None:
+        parser.error("--recover reads a damaged --bag; give --bag too")
     if args.publish:
         publish_frames(args)
         return 0
@@ -205,12 +215,13 @@ def main(argv=None) -> int:
     model = load_model(parser, args.model, threads=args.threads, provider=args.provider)
     if args.bag is not None:  # read before any timing, so that a bad bag is one line here
         try:
-            episode_masks(args.bag, 1)
+            episode_masks(args.bag, 1, args.recover)
         except (BagError, ImageRejected, ValueError) as exc:
             parser.error(f"--bag: {exc}")
     result = run_no_ros(args, model) if args.no_ros else run_ros(args)
     result["setup"] = {"model": str(args.model), "model_id": model.model_id, "kind": model.info.kind,
-                       "mode": "no-ros" if args.no_ros else "ros", "policy": args.policy, "every_n": args.every_n,
+                       "mode": "no-ros" if args.no_ros else "ros", "rate": None if args.no_ros else args.rate,
+                       "policy": args.policy, "every_n": args.every_n,
                        "min_frames": args.min_frames,
                        "episodes": args.episodes, "threads": args.threads, "provider": args.provider, "cpu": platform.processor() or
                        platform.machine(), "cpu_count": os.cpu_count()}

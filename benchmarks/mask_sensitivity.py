@@ -43,12 +43,21 @@ def model_errors(metrics_path: Path) -> tuple[str, dict[str, dict[str, float]]]:
     except (OSError, ValueError) as exc:
         raise SystemExit(f"{metrics_path} cannot be read as JSON ({exc}); pass --metrics with the metrics JSON of an "
                          "evaluated model") from None
+    advice = "pass --metrics with the metrics JSON of an evaluated model"
+    if not isinstance(metrics, dict):
+        raise SystemExit(f"{metrics_path} holds a JSON {type(metrics).__name__}, not a model's metrics (an object); "
+                         f"{advice}")
     try:
         families = metrics["evaluation"]["unseen"]["full"]["families"]
         errors = {f: {n: families[f]["correct"][n] for n in SAMPLED_PARAMETERS[f]} for f in FAMILIES}
-    except (KeyError, TypeError) as exc:
-        raise SystemExit(f"{metrics_path} has no unseen evaluation ({exc} missing); pass --metrics with the "
-                         "metrics JSON of an evaluated model") from None
+    except KeyError as exc:
+        raise SystemExit(f"{metrics_path} has no unseen evaluation ({exc} missing); {advice}") from None
+    except TypeError:  # a list or a number where the path evaluation.unseen.full.families.<family>.correct has objects
+        raise SystemExit(f"{metrics_path} has no unseen evaluation (evaluation.unseen.full.families.<family>.correct "
+                         f"is not laid out as a model's metrics); {advice}") from None
+    if wrong := [f"{f} {n}" for f, e in errors.items() for n, v in e.items()
+                 if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)))]:
+        raise SystemExit(f"{metrics_path} has an unseen error that is not a number for {', '.join(wrong)}; {advice}")
     if missing := [f"{f} {n}" for f, e in errors.items() for n, v in e.items() if v is None]:
         raise SystemExit(f"{metrics_path} has no unseen error for {', '.join(missing)} (no correctly classified "
                          "instance); pass --metrics with another model's metrics")

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -20,10 +22,43 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "ros_ws" / "src" / "ad_sim"), str(ROOT / "ros_ws" / "src" / "ad_estimator"), str(ROOT / "benchmarks")]
 
 from ad_estimator.cli import positive  # noqa: E402
-from common import check_warp_device  # noqa: E402
+from common import check_warp_device, output_file  # noqa: E402
 from sim_throughput import SHAPE_SIZE, make_scene  # noqa: E402
 
 from ad_sim import mpm  # noqa: E402
+
+
+def npz_out(text: str) -> Path:
+    """argparse type of --output: a file whose folder exists, checked before the simulation; .npz is appended
+    to a name without it (as numpy.savez_compressed would do anyway), so that the name printed is the file's."""
+    path = output_file(text, "cpu.npz")
+    return path if path.suffix == ".npz" else output_file(f"{path}.npz", "cpu.npz")
+
+
+def load_run(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of a file written by --output, or ValueError naming what is wrong with it (one line)."""
+    not_ours = f"{path} is not a file written by mpm_device_check.py --output"
+    try:
+        data = np.load(path)  # allow_pickle=False: a file that is not numpy data is refused, not unpickled
+    except OSError as exc:  # missing, a folder, unreadable
+        raise ValueError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except EOFError:
+        raise ValueError(f"{not_ours} (it is empty)") from None
+    except (ValueError, zipfile.BadZipFile):  # numpy's message would speak of pickled data: a file it cannot tell
+        raise ValueError(f"{not_ours} (not an .npz file)") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):  # a single array (.npy)
+        raise ValueError(f"{not_ours} (a single .npy array, not an .npz file)")
+    try:
+        with data:
+            arrays = {key: data[key] for key in data.files}
+    except (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error) as exc:  # a damaged member
+        raise ValueError(f"{not_ours} (damaged: {exc})") from None
+    if "families" not in arrays:
+        raise ValueError(f"{not_ours} (it has no 'families' array)")
+    expected = {"families"} | {f"{kind}{i}" for i in range(len(arrays["families"])) for kind in "xF"}
+    if set(arrays) != expected:
+        raise ValueError(f"{not_ours} (its arrays are not x0.., F0.. and families, one x and F per scene)")
+    return arrays
 
 
 def run(device: str, output: Path, count: int, frames: int) -> None:
@@ -40,21 +75,21 @@ def run(device: str, output: Path, count: int, frames: int) -> None:
 
 
 def compare(a: Path, b: Path) -> None:
-    with np.load(a) as A, np.load(b) as B:
-        shapes = {name: [A[key].shape for key in A.files if key != "families"] for name, A in ((a, A), (b, B))}
-        if shapes[a] != shapes[b] or list(A["families"]) != list(B["families"]):
-            raise ValueError(f"{a} and {b} hold different runs (scenes, families or frames differ); compare files "
-                             "written with the same --scenes and --frames")
-        for i, family in enumerate(A["families"]):
-            dx = np.abs(A[f"x{i}"] - B[f"x{i}"]).max()
-            dF = np.abs(A[f"F{i}"] - B[f"F{i}"]).max()
-            print(f"scene {i:2d} {family:>10}: max |dx| {dx:.2e} m, max |dF| {dF:.2e}")
+    A, B = load_run(a), load_run(b)
+    shapes = {name: {key: arrays[key].shape for key in arrays if key != "families"} for name, arrays in ((a, A), (b, B))}
+    if shapes[a] != shapes[b] or list(A["families"]) != list(B["families"]):
+        raise ValueError(f"{a} and {b} hold different runs (scenes, families or frames differ); compare files "
+                         "written with the same --scenes and --frames")
+    for i, family in enumerate(A["families"]):
+        dx = np.abs(A[f"x{i}"] - B[f"x{i}"]).max()
+        dF = np.abs(A[f"F{i}"] - B[f"F{i}"]).max()
+        print(f"scene {i:2d} {family:>10}: max |dx| {dx:.2e} m, max |dF| {dF:.2e}")
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", help="Warp device to run on (default cpu)")
-    parser.add_argument("--output", type=Path, help="npz file to write")
+    parser.add_argument("--output", type=npz_out, help="npz file to write (.npz is appended to a name without it)")
     parser.add_argument("--scenes", type=positive, default=6, help="number of scenes (default 6)")
     parser.add_argument("--frames", type=positive, default=25, help="frames (default 25)")
     parser.add_argument("--compare", nargs=2, type=Path, metavar=("A", "B"), help="compare two npz files")

@@ -33,13 +33,29 @@ from ad_sim.rosbag import BagReader, BagWriter  # noqa: E402
 from ad_estimator.cli import positive  # noqa: E402
 
 
-def main() -> None:
+MAX_DOMAIN_ID = 232  # the largest ROS domain whose DDS ports fit (Fast DDS, default port mapping)
+QUIET_DOMAINS = range(1, 101)  # as tests/conftest.py: valid for DDS on Linux whatever the participant count
+
+
+def ros_domain(parser: argparse.ArgumentParser) -> int:
+    """The caller's ROS_DOMAIN_ID if set (shared machines give each user one), else a random one of 1..100;
+    parser.error (one line, exit 2) for one that is not a domain, before any work."""
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return random.choice(QUIET_DOMAINS)
+    if not text.isdigit() or int(text) > MAX_DOMAIN_ID:
+        parser.error(f"ROS_DOMAIN_ID must be a ROS domain, a whole number 0..{MAX_DOMAIN_ID} (e.g. 62), got {text!r}")
+    return int(text)
+
+
+def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--episodes", type=positive, default=20, help="episodes to publish (default %(default)s)")
     parser.add_argument("--views", type=positive, default=1, help="cameras per episode (default %(default)s)")
     parser.add_argument("--keep", action="store_true", help="keep the bags and the recorder's log (path printed)")
     parser.add_argument("--slow-heartbeat", action="store_true", help="keep Fast DDS's 3 s heartbeat (what the node avoids)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    domain = ros_domain(parser)
 
     import rclpy
     from rclpy.context import Context
@@ -67,9 +83,7 @@ def main() -> None:
     converted = [(topic, to_ros_message(types[topic], data)) for topic, _, data in items]
     conversion = time.perf_counter() - start_time
 
-    # The caller's ROS_DOMAIN_ID if set (shared machines give each user one), else a random quiet one.
-    domain = int(os.environ.get("ROS_DOMAIN_ID") or random.randrange(101, 200))
-    os.environ["ROS_DOMAIN_ID"] = str(domain)
+    os.environ["ROS_DOMAIN_ID"] = str(domain)  # for the recorder
     context = Context()
     rclpy.init(context=context, domain_id=domain)
     node = Node("throughput", context=context)
@@ -106,7 +120,8 @@ def main() -> None:
         print(f"kept in {work}")
     else:
         shutil.rmtree(work)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -28,7 +28,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "ros_ws" / "src" / pkg
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common, also when a test imports this file by path
 
 import warp as wp  # noqa: E402
-from ad_estimator.cli import positive  # noqa: E402
+from ad_estimator.cli import count, positive  # noqa: E402
 from common import check_warp_device, json_out, quiet_warp  # noqa: E402
 
 quiet_warp()
@@ -168,7 +168,7 @@ def main(argv=None) -> int:
     parser.add_argument("--instances", type=positive, default=None, help="instances to simulate (default: one batch)")
     parser.add_argument("--frames", type=int, default=materials.FRAME_COUNT,
                         help="frames per instance in MPM mode (default 25; --episodes always simulates 25)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the mix (default 0)")
+    parser.add_argument("--seed", type=count, default=0, help="random seed of the mix (default 0)")
     parser.add_argument("--no-group", dest="group", action="store_false", help="batch in order, not by substeps")
     parser.add_argument("--episodes", action="store_true", help="time episode.simulate_batch (MPM + rendering)")
     parser.add_argument("--progress", action="store_true", help="tqdm progress bars")

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ad_estimator import metrics
+from ad_estimator.cli import non_negative_number, positive, positive_number
 from ad_estimator.window import stamp_to_ns
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -131,21 +132,28 @@ def stop(proc: subprocess.Popen) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="./run_demo.sh", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--episodes", type=int, default=6, help="stop after this many estimates (tiny unseen has 6)")
+    parser.add_argument("--episodes", type=positive, default=6, help="stop after this many estimates (tiny unseen has 6)")
     parser.add_argument("--size", default="tiny", choices=["tiny", "small", "paper"], help="benchmark size")
     parser.add_argument("--split", default="unseen", choices=["train", "seen", "unseen"])
-    parser.add_argument("--real-time-factor", type=float, default=1.0, help="simulator pacing (0 = fast)")
+    parser.add_argument("--real-time-factor", type=non_negative_number, default=1.0,
+                        help="simulator pacing (0 = as fast as the estimator keeps up)")
     parser.add_argument("--model", default="", help="ONNX model for the estimator (default: bundled)")
-    parser.add_argument("--timeout", type=float, default=900.0, help="give up after this many seconds")
+    parser.add_argument("--timeout", type=positive_number, default=900.0, help="give up after this many seconds")
     parser.add_argument("--logs", type=Path, default=ROOT / "reports" / "demo", help="node logs go here")
     args = parser.parse_args(argv)
+    # The log folder before any node starts: a file of that name, or a folder that cannot be made, is one line.
+    if args.logs.exists() and not args.logs.is_dir():
+        parser.error(f"--logs: {args.logs} is a file; give a folder for the node logs")
+    try:
+        args.logs.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        parser.error(f"--logs: cannot make the folder {args.logs}: {exc.strerror or exc}")
 
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randrange(1, 100)))
-    args.logs.mkdir(parents=True, exist_ok=True)
     # Ctrl-C is ours, as in the sim and record nodes: KeyboardInterrupt in this thread, and the
     # finally block stops everything. Installed explicitly, because a shell without job control
     # starts background jobs with SIGINT ignored, and rclpy's own handler could shut the context

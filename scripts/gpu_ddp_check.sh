@@ -15,7 +15,13 @@ export PYTHONPATH="$ROOT/ros_ws/src/ad_sim:$ROOT/ros_ws/src/ad_estimator:$ROOT${
 EPOCHS=${EPOCHS:-8}
 DATA=${DATA:-small}
 MODEL=${MODEL:-paper}
-GPUS=$(nvidia-smi -L | wc -l)
+command -v nvidia-smi >/dev/null || {
+    echo "gpu_ddp_check.sh: nvidia-smi not found: this check runs on a machine with 2 or more NVIDIA GPUs and their driver" >&2
+    exit 1
+}
+# GPUs by index, as scripts/gpu_paper.sh counts them (nvidia-smi -L would also count MIG instances); none if
+# nvidia-smi fails (no driver loaded), which the check below then says
+GPUS=$( (nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null || true) | wc -l)
 [ "$GPUS" -ge 2 ] || { echo "gpu_ddp_check.sh: needs 2 or more GPUs, found $GPUS" >&2; exit 1; }
 mkdir -p "$WORK"
 BAGS=$WORK/bags/train

@@ -14,7 +14,11 @@
 set -euo pipefail
 [ $# -ge 1 ] || { sed -n '2,13p' "$0"; exit 2; }
 PACK_ONLY=0
-[ "$1" = --pack ] && { PACK_ONLY=1; shift; }
+if [ "$1" = --pack ]; then
+    PACK_ONLY=1
+    shift
+    [ $# -ge 1 ] || { echo "gpu_paper.sh: --pack needs WORK, the folder of an earlier run: --pack WORK [RESULTS]" >&2; exit 2; }
+fi
 WORK=$1
 RESULTS=${2:-$WORK/results}
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -26,16 +30,28 @@ BASELINE=${BASELINE:-0}
 export DEVICE=${DEVICE:-cuda}
 BAGS=$WORK/bags
 RUN=$WORK/run
-mkdir -p "$BAGS" "$RUN" "$RESULTS"
 
+packed() {  # what of WORK goes into the archive, relative to WORK (nothing if WORK is missing)
+    (cd "$WORK" 2>/dev/null && ls -d run/models run/reports run/*.log run/*/history.json run/summary.json \
+        baseline 2>/dev/null) || true
+}
 pack() {
-    tar -czf "$RESULTS/results.tar.gz" -C "$WORK" --ignore-failed-read \
-        $(cd "$WORK" && ls -d run/models run/reports run/*.log run/*/history.json run/summary.json \
-          baseline 2>/dev/null) 2>/dev/null || true
+    mkdir -p "$RESULTS"
+    tar -czf "$RESULTS/results.tar.gz" -C "$WORK" --ignore-failed-read $(packed) 2>/dev/null || true
     # The teacher travels on its own: with it a later machine trains students without retraining it.
     [ -f "$WORK/run/teacher/best.pt" ] && cp "$WORK/run/teacher/best.pt" "$RESULTS/teacher.pt" || true
 }
-if [ "$PACK_ONLY" = 1 ]; then pack; ls -la "$RESULTS"; exit 0; fi
+if [ "$PACK_ONLY" = 1 ]; then
+    [ -d "$WORK" ] || { echo "gpu_paper.sh: --pack: $WORK does not exist; give the WORK folder of an earlier run" >&2; exit 1; }
+    [ -n "$(packed)" ] || { echo "gpu_paper.sh: --pack: nothing to pack in $WORK (no run/models, run/reports, run logs or" \
+        "baseline); give the WORK folder of an earlier run" >&2; exit 1; }
+    rm -f "$RESULTS/results.tar.gz"  # an earlier archive must not pass for this one
+    pack
+    [ -s "$RESULTS/results.tar.gz" ] || { echo "gpu_paper.sh: --pack: no archive written to $RESULTS" >&2; exit 1; }
+    ls -la "$RESULTS"
+    exit 0
+fi
+mkdir -p "$BAGS" "$RUN" "$RESULTS"
 trap pack EXIT
 
 echo "==> generate $SIZE_BENCH ($GEN_PROCS processes per split) $(date +%T)"

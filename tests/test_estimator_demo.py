@@ -51,6 +51,24 @@ def test_ctrl_c_stops_the_demo_and_its_nodes_cleanly(tmp_path, ros_domain_id):
     assert leftovers == [], f"estimator node still running: {leftovers}"
 
 
+@pytest.mark.parametrize("argv, expected", [
+    (["--episodes", "0"], "argument --episodes: expected a whole number >= 1, got '0'"),  # started both nodes
+    (["--episodes", "-1"], "argument --episodes: expected a whole number >= 1, got '-1'"),
+    (["--timeout", "-5"], "argument --timeout: expected a number > 0, got '-5'"),  # "the estimator did not come up"
+    (["--real-time-factor", "-1"], "argument --real-time-factor: expected a number >= 0, got '-1'"),  # the simulator failed
+    (["--real-time-factor", "nan"], "argument --real-time-factor: expected a number >= 0, got 'nan'"),
+    (["--logs", "{tmp}/file"], "--logs: {tmp}/file is a file; give a folder for the node logs"),  # FileExistsError
+    (["--logs", "{tmp}/file/logs"], "--logs: cannot make the folder {tmp}/file/logs: Not a directory"),
+])
+def test_a_bad_argument_is_one_line_before_any_node_starts(tmp_path, ros_domain_id, argv, expected):
+    (tmp_path / "file").write_text("not a folder")
+    result = subprocess.run([sys.executable, str(REPO / "scripts" / "demo.py"), "--logs", str(tmp_path / "logs"),
+                             *[a.format(tmp=tmp_path) for a in argv]], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert result.stderr.splitlines()[-1] == f"./run_demo.sh: error: {expected.format(tmp=tmp_path)}", result.stderr
+    assert "Traceback" not in result.stderr and "estimator up" not in result.stdout
+
+
 def test_run_demo_help_answers_without_re_running_setup():
     """`./run_demo.sh --help` on a set-up checkout: the demo's options, without setup's checks first."""
     result = subprocess.run([str(REPO / "run_demo.sh"), "--help"], capture_output=True, text=True, timeout=60)

@@ -56,7 +56,11 @@ def test_a_run_on_the_cpu_reports_how_much_a_move_changes_the_masks(tmp_path):
     assert "| sand | friction_angle |" in result.stdout
 
 
-@pytest.mark.parametrize("content, expected", [("{", "cannot be read as JSON"), ('{"model_id": "x"}', "no unseen evaluation")])
+@pytest.mark.parametrize("content, expected", [
+    ("{", "cannot be read as JSON"), ('{"model_id": "x"}', "no unseen evaluation"),
+    ("[1, 2]", "holds a JSON list, not a model's metrics (an object); pass --metrics"),  # was "(list indices ... missing)"
+    ('{"evaluation": {"unseen": {"full": {"families": [1]}}}}',
+     "has no unseen evaluation (evaluation.unseen.full.families.<family>.correct is not laid out as a model's metrics)")])
 def test_a_bad_metrics_file_is_one_clear_line(tmp_path, content, expected):
     metrics = tmp_path / "m.metrics.json"
     metrics.write_text(content)
@@ -71,4 +75,13 @@ def test_a_missing_error_is_named(tmp_path):
     path = tmp_path / "m.metrics.json"
     path.write_text(json.dumps(metrics))
     with pytest.raises(SystemExit, match="jelly poissons_ratio"):
+        mask_sensitivity.model_errors(path)
+
+
+def test_an_error_that_is_not_a_number_is_named(tmp_path):
+    metrics = json.loads(mask_sensitivity.BUNDLED_MODEL.with_suffix(".metrics.json").read_text())
+    metrics["evaluation"]["unseen"]["full"]["families"]["sand"]["correct"]["friction_angle"] = "3.5"
+    path = tmp_path / "m.metrics.json"
+    path.write_text(json.dumps(metrics))
+    with pytest.raises(SystemExit, match="not a number for sand friction_angle"):  # was a ValueError from float()
         mask_sensitivity.model_errors(path)

@@ -1,0 +1,131 @@
+"""scripts/preview_episode.py and the GPU machine's shell scripts (gpu_paper.sh, gpu_ddp_check.sh): a bad
+argument is one line and a nonzero exit before any work, never a traceback after the simulation or a shell's
+own error."""
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+import subprocess
+import tarfile
+from pathlib import Path
+
+import pytest
+import warp as wp
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def preview_episode():
+    spec = importlib.util.spec_from_file_location("preview_episode", SCRIPTS / "preview_episode.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+PREVIEW_CASES = [
+    (["--instances", "{tmp}/missing.yaml"], "--instances: cannot read {tmp}/missing.yaml: No such file or directory"),
+    (["--instances", "{tmp}/bad.yaml"], "--instances: {tmp}/bad.yaml: not valid YAML: expected ',' or ']', but got ':' "
+                                        "at line 2"),
+    (["--instances", "{tmp}/notes.txt"], "--instances: {tmp}/notes.txt: instance files end in .yaml, .yml or .json"),
+    (["-o", "{tmp}/sheet.jpgg"], "-o/--output: OpenCV cannot write 'sheet.jpgg'; give an image name such as episode.png"),
+    (["-o", "{tmp}"], "-o/--output: {tmp} is a folder; give a file name, e.g. {tmp}/episode.png"),
+    (["-o", "{tmp}/notes.txt/sheet.png"], "-o/--output: {tmp}/notes.txt is a file, not a folder"),
+    (["--views", "-2"], "argument --views: expected a whole number >= 1, got '-2'"),
+    (["--views", "0"], "argument --views: expected a whole number >= 1, got '0'"),
+]
+if not wp.is_cuda_available():  # was Warp's RuntimeError once the simulation started
+    PREVIEW_CASES += [(["--device", "cuda"], "--device: Warp device 'cuda' is not available: no CUDA GPU or driver")]
+
+
+@pytest.mark.parametrize("argv,expected", PREVIEW_CASES)
+def test_preview_episode_refuses_a_bad_argument_before_simulating(tmp_path, capsys, argv, expected):
+    (tmp_path / "bad.yaml").write_text("rosbag2_bagfile_information: [unclosed\n  : - x: {")
+    (tmp_path / "notes.txt").write_text("- shape: box\n")
+    before = sorted(os.listdir(tmp_path))
+    with pytest.raises(SystemExit) as exit_info:
+        preview_episode().main(["-o", str(tmp_path / "sheet.png"), *[a.format(tmp=tmp_path) for a in argv]])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1].split(": error: ", 1)[1].startswith(expected.format(tmp=tmp_path)), err
+    assert "Traceback" not in err and "simulating" not in err
+    assert sorted(os.listdir(tmp_path)) == before  # nothing written
+
+
+def test_preview_episode_writes_its_contact_sheet_into_a_new_folder(tmp_path, capsys):
+    out = tmp_path / "new" / "sheet.png"
+    assert preview_episode().main(["--views", "2", "-o", str(out)]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == str(out)  # after Warp's kernel-load lines
+    import cv2
+    sheet = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE)
+    assert sheet.shape == (24 + 2 * (128 + 2), 25 * (128 + 2))  # caption, 2 views x 25 frames of 128x128
+
+
+def run_script(name: str, *args: str, path: str | None = None) -> subprocess.CompletedProcess:
+    env = dict(os.environ)
+    if path is not None:
+        env["PATH"] = path
+    return subprocess.run(["/bin/bash", str(SCRIPTS / name), *args], capture_output=True, text=True, env=env,
+                          timeout=60)
+
+
+def test_gpu_paper_pack_without_work_is_a_usage_error():
+    result = run_script("gpu_paper.sh", "--pack")  # was "$1: unbound variable" (exit 1)
+    assert result.returncode == 2
+    assert result.stderr == "gpu_paper.sh: --pack needs WORK, the folder of an earlier run: --pack WORK [RESULTS]\n"
+
+
+def test_gpu_paper_pack_of_a_missing_or_empty_work_fails_and_makes_nothing(tmp_path):
+    result = run_script("gpu_paper.sh", "--pack", str(tmp_path / "missing"))  # exited 0 without an archive
+    assert result.returncode == 1
+    assert result.stderr == (f"gpu_paper.sh: --pack: {tmp_path}/missing does not exist; give the WORK folder of an "
+                             "earlier run\n")
+    assert os.listdir(tmp_path) == []  # no WORK/bags, WORK/run, WORK/results made for it
+    (tmp_path / "empty").mkdir()
+    result = run_script("gpu_paper.sh", "--pack", str(tmp_path / "empty"))
+    assert result.returncode == 1 and "gpu_paper.sh: --pack: nothing to pack in" in result.stderr
+    assert os.listdir(tmp_path / "empty") == []
+
+
+def test_gpu_paper_pack_archives_what_a_run_left(tmp_path):
+    work = tmp_path / "work"
+    (work / "run" / "models").mkdir(parents=True)
+    (work / "run" / "models" / "streaming_full.onnx").write_text("model")
+    (work / "run" / "teacher").mkdir()
+    (work / "run" / "teacher" / "best.pt").write_text("teacher")
+    (work / "run" / "train.log").write_text("log")
+    results = tmp_path / "results"
+    result = run_script("gpu_paper.sh", "--pack", str(work), str(results))
+    assert result.returncode == 0, result.stderr
+    with tarfile.open(results / "results.tar.gz") as archive:
+        assert {"run/models/streaming_full.onnx", "run/train.log"} <= set(archive.getnames())
+    assert (results / "teacher.pt").read_text() == "teacher"
+
+
+def _bin_without_nvidia_smi(tmp_path: Path) -> Path:
+    """A PATH of the few commands gpu_ddp_check.sh runs before its GPU check, and no nvidia-smi."""
+    folder = tmp_path / "bin"
+    folder.mkdir()
+    for command in ("dirname", "wc", "sed"):
+        (folder / command).symlink_to(shutil.which(command))
+    return folder
+
+
+def test_gpu_ddp_check_without_nvidia_smi_says_what_it_needs(tmp_path):
+    folder = _bin_without_nvidia_smi(tmp_path)
+    result = run_script("gpu_ddp_check.sh", str(tmp_path / "work"), path=str(folder))
+    assert result.returncode == 1  # was bash's "nvidia-smi: command not found" (exit 127) and nothing else
+    assert result.stderr == ("gpu_ddp_check.sh: nvidia-smi not found: this check runs on a machine with 2 or more "
+                             "NVIDIA GPUs and their driver\n")
+    assert not (tmp_path / "work").exists()
+
+
+@pytest.mark.parametrize("fake, found", [("echo 0", 1), ("echo 'NVIDIA-SMI has failed' >&2; exit 9", 0)])
+def test_gpu_ddp_check_needs_two_gpus(tmp_path, fake, found):
+    folder = _bin_without_nvidia_smi(tmp_path)
+    (folder / "nvidia-smi").write_text(f"#!/bin/sh\n{fake}\n")
+    (folder / "nvidia-smi").chmod(0o755)
+    result = run_script("gpu_ddp_check.sh", str(tmp_path / "work"), path=str(folder))
+    assert result.returncode == 1
+    assert result.stderr == f"gpu_ddp_check.sh: needs 2 or more GPUs, found {found}\n"
+    assert not (tmp_path / "work").exists()
