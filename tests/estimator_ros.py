@@ -28,7 +28,7 @@ def ros_context(domain: int | None = None):
     context = Context()
     rclpy.init(context=context, domain_id=random_domain() if domain is None else domain)
     executor = MultiThreadedExecutor(num_threads=3, context=context)
-    spinner = threading.Thread(target=_spin, args=(executor, context), daemon=True)
+    spinner = threading.Thread(target=spin_until_shutdown, args=(executor, context), daemon=True)
     spinner.start()
     try:
         yield context, executor
@@ -38,7 +38,7 @@ def ros_context(domain: int | None = None):
         executor.shutdown(timeout_sec=2.0)
 
 
-def _spin(executor, context) -> None:
+def spin_until_shutdown(executor, context) -> None:
     while context.ok():
         try:
             executor.spin_once(timeout_sec=0.05)

@@ -24,12 +24,12 @@ from std_srvs.srv import Trigger
 
 from ad_estimator import estimate
 from ad_estimator.model import EstimatorModel
-from ad_estimator.node import EstimatorNode
+from ad_estimator.node import EstimatorNode, make_executor
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS
 from ad_estimator.window import FrameWindow
 from ad_sim.rosbag import BagReader
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
-from estimator_ros import image_msg, ros_context, wait_for
+from estimator_ros import image_msg, ros_context, spin_until_shutdown, wait_for
 from sim_fixtures import write_coverage_bag
 
 pytestmark = pytest.mark.ros
@@ -49,7 +49,8 @@ def ros(ros_domain_id):
         yield context, executor
 
 
-def start(ros, model_path, remap=f"mask:={TOPIC}", **params):
+def start(ros, model_path, remap=f"mask:={TOPIC}", node_executor=None, **params):
+    """The node on the test's executor, or on `node_executor` (e.g. the node's own, make_executor())."""
     context, executor = ros
     # Tests publish bursts faster than real time; a busy CI machine can stall a burst for longer than
     # the default idle flush, which would emit an early estimate: tests of idle flushing set it.
@@ -62,7 +63,7 @@ def start(ros, model_path, remap=f"mask:={TOPIC}", **params):
     estimates = []
     client.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append, 10)
     publisher = client.create_publisher(Image, TOPIC, QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
-    executor.add_node(node)
+    (node_executor or executor).add_node(node)
     executor.add_node(client)
     assert wait_for(lambda: publisher.get_subscription_count() > 0 and client.count_publishers(
         "/ad_estimator/estimate") > 0), "estimator did not come up"
@@ -206,10 +207,12 @@ def test_window_restarts_on_backwards_stamps_and_size_change(ros, model_paths, c
 
 def test_the_stream_is_served_while_a_clip_is_estimated(ros, model_paths):
     """A clip call that takes long (held here until the stream's estimate arrives) no longer holds up the
-    subscription: it shared the executor's callback group, so a 9 s clip of large frames lost the stream."""
-    import threading
-
-    t = start(ros, model_paths["streaming"])
+    subscription: it shared the executor's callback group, so a 9 s clip of large frames lost the stream.
+    The node spins on its own executor here, as in `ros2 run` (single-threaded: the clip service has its own)."""
+    context, _ = ros
+    node_executor = make_executor(context)
+    threading.Thread(target=spin_until_shutdown, args=(node_executor, context), daemon=True).start()
+    t = start(ros, model_paths["streaming"], node_executor=node_executor)
     busy, release, estimate_clip = threading.Event(), threading.Event(), t.node.estimate_clip
 
     def slow_clip(frames):

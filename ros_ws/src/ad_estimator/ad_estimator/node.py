@@ -3,9 +3,9 @@
 Thin ROS shell around ad_estimator.model (onnxruntime), .window (slots, episodes, output policy)
 and .images (Image -> mask). Threads: the subscription callback only checks header fields and
 puts the message in a bounded queue (full queue: the frame is dropped and counted); one worker
-thread converts, encodes, runs the model and publishes. The executor has two threads: the ~/estimate
-clip service has its own callback group (a long clip must not hold up the subscription) and its own
-window, sharing the (thread-safe) onnxruntime sessions.
+thread converts, encodes, runs the model and publishes. The ~/estimate clip service runs on a
+companion node (<name>_clip) with an executor in a thread of its own (a long clip must not hold up
+the subscription), with its own window, sharing the (thread-safe) onnxruntime sessions.
 
 Topics: subscribes /ad_sim/view_0/mask (remap `mask:=...` or the full name), publishes
 /ad_estimator/estimate (ad_msgs/MaterialEstimate, reliable) and /diagnostics every
@@ -27,8 +27,7 @@ from ad_msgs.srv import EstimateMaterial
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.exceptions import ParameterException
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
@@ -134,10 +133,7 @@ class EstimatorNode(Node):
             event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self.on_incompatible_qos))
         self.input_topic = self.subscription.topic_name  # after any remap, the default topic's by its full name too
         self.create_service(Trigger, "~/reset", self.on_reset)
-        # Its own group: a clip (up to MAX_CLIP_FRAMES large frames) takes seconds, and in the default group,
-        # on a multi-threaded executor, it would hold up the subscription while the stream's frames are lost.
-        self.create_service(EstimateMaterial, "~/estimate", self.on_estimate,
-                            callback_group=MutuallyExclusiveCallbackGroup())
+        self._serve_clips_apart()
         self.create_timer(p["diagnostics_period"], self.publish_diagnostics)
         self._diag_time = time.monotonic()
         self.worker = threading.Thread(target=self._work, name="ad_estimator_worker", daemon=True)
@@ -435,10 +431,35 @@ class EstimatorNode(Node):
         array.status = [status]
         self.diagnostics.publish(array)
 
+    def _serve_clips_apart(self) -> None:
+        """~/estimate on a companion node (<name>_clip) with a single-threaded executor in a thread of its own: a
+        clip (up to MAX_CLIP_FRAMES large frames) takes seconds, and on the stream's executor it would hold up the
+        subscription while the stream's frames are lost. (rclpy's MultiThreadedExecutor serves both too, but on a
+        2-core CPU it raised the stream's p99 latency from 5-6 ms to 19-35 ms: benchmarks/latency.py.)"""
+        service = self.resolve_service_name("~/estimate")  # the name the node's remaps give it, used as is
+        self.clip_node = Node(f"{self.get_name()}_clip", namespace=self.get_namespace(), context=self.context,
+                              use_global_arguments=False, start_parameter_services=False)
+        self.clip_node.create_service(EstimateMaterial, service, self.on_estimate)
+        self.clip_executor = SingleThreadedExecutor(context=self.context)
+        self.clip_executor.add_node(self.clip_node)
+        self.clip_server = threading.Thread(target=self._serve_clips, name="ad_estimator_clips", daemon=True)
+        self.clip_server.start()
+
+    def _serve_clips(self) -> None:
+        while not self._stop.is_set() and self.context.ok():
+            try:
+                self.clip_executor.spin_once(timeout_sec=0.1)
+            except (ExternalShutdownException, RCLError):  # the context shut down under it: the node is going
+                return
+
     def destroy_node(self) -> None:
         self._stop.set()
         if self.worker.is_alive():
             self.worker.join(timeout=2.0)
+        if self.clip_server.is_alive():
+            self.clip_server.join(timeout=2.0)
+        self.clip_executor.shutdown(timeout_sec=1.0)
+        self.clip_node.destroy_node()
         super().destroy_node()
 
 
@@ -458,9 +479,9 @@ def parse_cli(argv: list[str]) -> None:
         "\n\nExit status 1 if the model cannot be loaded.")
 
 
-def make_executor(context=None) -> MultiThreadedExecutor:
-    """The node's executor: two threads, so that the clip service runs beside the stream's callbacks."""
-    return MultiThreadedExecutor(num_threads=2, context=context)
+def make_executor(context=None) -> SingleThreadedExecutor:
+    """The node's executor (the clip service has its own: EstimatorNode._serve_clips_apart)."""
+    return SingleThreadedExecutor(context=context)
 
 
 def main(args=None) -> int:
