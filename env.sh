@@ -13,6 +13,7 @@ _ad_venv="${VENV:-$(cat "$_ad_root/ros_ws/install/.ad-venv" 2>/dev/null || echo 
 if ! . "$_ad_venv/bin/activate" || ! { if [ -n "${ZSH_VERSION:-}" ]; then . "$_ad_root/ros_ws/install/setup.zsh"
                                         else . "$_ad_root/ros_ws/install/setup.bash"; fi; }; then
     echo "env.sh: the environment is incomplete (venv $_ad_venv): run $_ad_root/setup.sh again" >&2
+    command -v deactivate >/dev/null && deactivate  # no half-set environment
     [ -n "$_ad_nounset" ] && set -u
     unset _ad_root _ad_venv _ad_nounset
     return 1 2>/dev/null || exit 1

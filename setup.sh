@@ -38,9 +38,13 @@ exec 9> "$WS/log/.setup.lock"
 if command -v flock >/dev/null; then flock 9; fi
 
 # 1. Virtual environment --------------------------------------------------------------------
-# A venv made at another path (a moved checkout) has scripts that name that path: it is made anew.
-if [ -x "$VENV/bin/python" ] && ! grep -qxF "VIRTUAL_ENV=\"$VENV\"" "$VENV/bin/activate" 2>/dev/null; then
-    step "$VENV was made at another path (moved?): making it anew"
+# A venv this script made at another path (a moved checkout) has scripts that name that path: it is made
+# anew. Its activate names the path it was made at, quoted or not (Python 3.11.11 and later quote it only
+# where needed); a venv this script did not make is never deleted.
+made_at="$(sed -nE "s/^ *(export +)?VIRTUAL_ENV=[\"']?([^\"']*)[\"']?$/\2/p" "$VENV/bin/activate" 2>/dev/null | head -n 1 || true)"
+if [ -x "$VENV/bin/python" ] && [ -n "$made_at" ] && ! [ "$made_at" -ef "$VENV" ]; then
+    [ -d "$VENV/.ad-setup" ] || die "$VENV was made at $made_at (moved?), and not by setup.sh: remove it, or set VENV=elsewhere"
+    step "$VENV was made at $made_at (moved?): making it anew"
     rm -rf "$VENV"
 fi
 if [ ! -x "$VENV/bin/python" ]; then
@@ -123,8 +127,9 @@ all_installed() {
 }
 # A build tree from another checkout (moved, or copied in) cannot be built on: CMake refuses its cache,
 # and colcon would install into the other checkout.
-if [ -f "$WS/build/ad_msgs/CMakeCache.txt" ] \
-        && ! grep -qxF "CMAKE_CACHEFILE_DIR:INTERNAL=$WS/build/ad_msgs" "$WS/build/ad_msgs/CMakeCache.txt"; then
+# (-ef: CMake records the physical path, and this checkout may be reached through a symbolic link.)
+CACHE_DIR="$(sed -n 's/^CMAKE_CACHEFILE_DIR:INTERNAL=//p' "$WS/build/ad_msgs/CMakeCache.txt" 2>/dev/null || true)"
+if [ -n "$CACHE_DIR" ] && ! [ "$CACHE_DIR" -ef "$WS/build/ad_msgs" ]; then
     step "ros_ws/build was made in another checkout: removing ros_ws/build and ros_ws/install"
     rm -rf "$WS/build" "$WS/install"
 fi

@@ -136,7 +136,7 @@ def main(argv=None) -> int:
     parser.add_argument("--size", default="tiny", choices=["tiny", "small", "paper"], help="benchmark size")
     parser.add_argument("--split", default="unseen", choices=["train", "seen", "unseen"])
     parser.add_argument("--real-time-factor", type=non_negative_number, default=1.0,
-                        help="simulator pacing (0 = as fast as the estimator keeps up)")
+                        help="simulator pacing (0: as fast as it can; the estimator subscribes best effort)")
     parser.add_argument("--model", default="", help="ONNX model for the estimator (default: bundled)")
     parser.add_argument("--timeout", type=positive_number, default=900.0, help="give up after this many seconds")
     parser.add_argument("--logs", type=Path, default=ROOT / "reports" / "demo", help="node logs go here")

@@ -387,6 +387,32 @@ def test_setup_refuses_a_path_with_a_space_before_doing_anything(tmp_path):
     assert sorted(p.name for p in checkout.iterdir()) == ["setup.sh"]  # no venv, no build
 
 
+@pytest.mark.parametrize("quoted", [True, False])  # Python 3.11.11 and later write the path unquoted
+def test_setup_makes_anew_only_its_own_venv_when_it_was_made_elsewhere(tmp_path, quoted):
+    """A moved checkout's venv names its old path in every script; setup.sh makes it anew, but only one it made
+    itself (its .ad-setup stamps): a user's VENV is never deleted. One made here is kept, however quoted."""
+    checkout, venv = tmp_path / "checkout", tmp_path / "venv"
+    checkout.mkdir()
+    (checkout / "setup.sh").write_bytes((REPO_ROOT / "setup.sh").read_bytes())
+    (venv / "bin").mkdir(parents=True)
+    (venv / "bin" / "python").symlink_to(sys.executable)
+
+    def setup(made_at: Path) -> subprocess.CompletedProcess:
+        (venv / "bin" / "activate").write_text(f'VIRTUAL_ENV="{made_at}"\n' if quoted else f"VIRTUAL_ENV={made_at}\n")
+        # The checkout has no requirements.txt: setup.sh stops at step 2, after the venv step.
+        return run(["bash", str(checkout / "setup.sh")], env={**os.environ, "VENV": str(venv)}, timeout=120)
+
+    refused = setup(tmp_path / "elsewhere")
+    assert refused.returncode == 1 and "and not by setup.sh: remove it, or set VENV=elsewhere" in refused.stderr
+    assert (venv / "bin" / "activate").exists()  # a venv setup.sh did not make: left alone
+    (venv / ".ad-setup").mkdir()
+    kept = setup(venv)
+    assert "making it anew" not in kept.stdout and (venv / ".ad-setup").is_dir(), kept.stdout
+    remade = setup(tmp_path / "elsewhere")
+    assert f"{venv} was made at {tmp_path / 'elsewhere'} (moved?): making it anew" in remade.stdout, remade.stdout
+    assert f"creating virtual environment {venv}" in remade.stdout and (venv / "bin" / "pip").exists()
+
+
 def test_env_sh_in_a_shell_with_set_u_and_with_a_broken_venv():
     """Sourced under `set -u`, colcon's setup.bash killed the calling shell (COLCON_TRACE unbound); with a venv
     that is gone, env.sh returned 0 and left the system Python."""

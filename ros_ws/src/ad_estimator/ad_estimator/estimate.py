@@ -84,6 +84,7 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
 
     def reject(kind: str, where: str, exc: Exception) -> None:
         rejected[kind] += 1
+        tally[kind] += 1  # now: a bag that fails further on keeps its count
         if rejected[kind] == 1:
             warnings.warn(f"{bag}: frame {where} skipped, as the node rejects it: {exc}")
 
@@ -105,7 +106,6 @@ def estimate_bag(model: EstimatorModel, bag: Path, topic: str, values: dict, rec
             continue
         collect(window.add(stamp, mask, model.encode))
     collect(window.flush())
-    tally.update(rejected)
     for kind, count in rejected.items():
         if count > 1:
             warnings.warn(f"{bag}: {count} frames in all skipped for the reason of the first ({kind})")

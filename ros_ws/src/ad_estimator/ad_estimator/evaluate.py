@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from ad_estimator import metrics
 from ad_estimator.cli import HelpFormatter, interruptible, positive, staged
-from ad_estimator.images import MAX_IMAGE_PIXELS, ImageRejected, image_to_mask
+from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC
 from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns

@@ -449,8 +449,11 @@ class EstimatorNode(Node):
         while not self._stop.is_set() and self.context.ok():
             try:
                 self.clip_executor.spin_once(timeout_sec=0.1)
-            except (ExternalShutdownException, RCLError):  # the context shut down under it: the node is going
-                return
+            except Exception as exc:  # noqa: BLE001 - the service must outlive one failed call while ROS runs
+                if self._stop.is_set() or not self.context.ok():
+                    return  # the context shut down under it: the node is going
+                self._count("errors")
+                self.warn(f"clip:{type(exc).__name__}", f"the clip service failed: {type(exc).__name__}: {exc}")
 
     def destroy_node(self) -> None:
         self._stop.set()

@@ -18,7 +18,6 @@ from pathlib import Path
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from .rosbag import BagError, split_type
 
 FAST_HEARTBEAT_PROFILE = Path(__file__).resolve().parent / "data" / "dds" / "fast_heartbeat.xml"
 MAX_QOS_DEPTH = 2**31 - 1  # rclpy refuses a larger history depth (a TypeError from its rmw_qos_profile_t)
@@ -94,6 +93,8 @@ def number(node, name: str) -> float:
 
 def message_class(type_name: str):
     """'pkg/msg/Type' -> the rclpy message class (the package must be installed and sourced)."""
+    from .rosbag import BagError, split_type  # here: every node imports this module, few need the bag reader
+
     package, namespace, name = split_type(type_name)
     try:
         return getattr(importlib.import_module(f"{package}.{namespace}"), name)

@@ -229,7 +229,8 @@ def write_shard(
 
     from .episode import simulate_batch
 
-    if folder.exists():  # shard_to_write checked it holds only generate's own files (a killed run's, or damaged)
+    check_replaceable(folder)  # deletes only a shard of generate's own (a killed run's, or damaged)
+    if folder.exists():
         shutil.rmtree(folder)
     batch = batch or DEFAULT_BATCH["cuda" if device.startswith("cuda") else "cpu"]
     # Closed also on an error or Ctrl-C: what was written stays readable (the shard, without its marker,

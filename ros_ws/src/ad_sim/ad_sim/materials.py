@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import warp as wp
 
 from .families import (  # noqa: F401 - re-exported: the simulator's users read them here
