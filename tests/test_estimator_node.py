@@ -729,9 +729,9 @@ def test_the_installed_example_params_file_configures_the_node(model_paths, ros_
 
 
 def test_estimator_runtime_never_imports_torch_nor_warp():
-    """What runs on the robot loads neither (Warp came in through the metrics' family constants: about 1 s
-    at start-up, and a simulator's dependency on the robot)."""
+    """What runs on the robot loads neither torch nor the simulator's Warp and SciPy (Warp came in through the
+    metrics' family constants: about 1 s at start-up, and a simulator's dependency on the robot)."""
     code = ("import sys, ad_estimator.node, ad_estimator.replay, ad_estimator.evaluate, ad_estimator.estimate, "
-            "ad_estimator.model, ad_estimator.metrics; print(sorted({'torch', 'warp'} & set(sys.modules)))")
+            "ad_estimator.model, ad_estimator.metrics; print(sorted({'torch', 'warp', 'scipy'} & set(sys.modules)))")
     probe = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert probe.returncode == 0 and probe.stdout.strip() == "[]", probe.stdout + probe.stderr

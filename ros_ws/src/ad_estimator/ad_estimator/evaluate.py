@@ -27,11 +27,12 @@ from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC
 from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns
+from ad_sim import messages
 from ad_sim.rosbag import BagError, BagReader, group_episodes, one_line_warnings
 
-INSTANCE_TOPIC = "/ad_sim/instance"
+INSTANCE_TOPIC = messages.instance_topic()
 MASK_TOPIC = DEFAULT_INPUT_TOPIC  # the node's input: the simulator's first camera
-IMAGE_TYPE = "sensor_msgs/msg/Image"
+IMAGE_TYPE = messages.IMAGE_TYPE
 
 
 @dataclass

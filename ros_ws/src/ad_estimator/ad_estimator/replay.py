@@ -28,13 +28,10 @@ from tqdm import tqdm
 
 from ad_estimator.cli import HelpFormatter
 from ad_estimator.window import ns_to_stamp
+from ad_sim import messages
 from ad_sim.dds import message_class, non_ros_args, qos_from_profile, use_fast_heartbeat
 from ad_sim.rosbag import BagError, BagReader, one_line_warnings, parse_offered_qos_profiles
 
-# Used when a bag has no metadata.yaml (a lone .mcap), and for what its offered_qos_profiles leave out or make
-# unusable: what the simulator offers (ad_sim.messages.topic_qos, not imported: its module loads Warp and SciPy).
-DEFAULT_QOS = {"reliability": "reliable", "durability": "volatile", "history": "keep_last", "depth": 100}
-TRANSIENT_LOCAL_TOPICS = ("/ad_sim/instance",)
 # time.sleep raises OverflowError past about 292 years (and --rate 1e-300 makes any gap that long): --delay is
 # kept to a day and --rate to 1000 times slower than recorded; the pacing sleeps go in steps of at most a day,
 # so that even a bag with a gap of centuries between log times waits rather than fails.
@@ -49,7 +46,9 @@ def qos_from_recorded(topic: str, profiles) -> QoSProfile:
     Its first profile, with the topic's default for what it lacks (ad_sim.dds.qos_from_profile). Anything that
     cannot be used (the whole, or a setting) takes the default with a warning naming the topic: a bag recorded
     elsewhere still plays, with the rest of its recorded QoS."""
-    default = dict(DEFAULT_QOS, durability="transient_local" if topic in TRANSIENT_LOCAL_TOPICS else "volatile")
+    # Used when a bag has no metadata.yaml (a lone .mcap), and for what its offered_qos_profiles leave out or make
+    # unusable: what the simulator offers.
+    default = messages.topic_qos(topic)
     unusable = []
     try:
         profiles = parse_offered_qos_profiles(profiles)

@@ -2,7 +2,7 @@
 
 The one source of truth for what the simulator node publishes and what `generate` writes:
 the node converts these dicts into rclpy messages, generate encodes them straight to CDR.
-No ROS import here.
+No ROS import here, and no Warp at import: the estimator's tools read the topic names, QoS and stamps.
 """
 
 from __future__ import annotations
@@ -11,8 +11,7 @@ from typing import Iterator
 
 import numpy as np
 
-from . import materials
-from .instances import SCALE
+from . import families
 
 EPISODE_PERIOD = 1.5  # s between episode starts in a stream: 0.6 s of frames, then a gap > 0.5 s
 DEFAULT_PREFIX = "/ad_sim"
@@ -35,7 +34,7 @@ QOS_DEPTH = 100
 def frame_stamp(episode_index: int, frame: int, base_ns: int = 0) -> int:
     """Stamp (ns) of frame `frame` of episode `episode_index` in a stream starting at base_ns."""
     episode_start = round(episode_index * EPISODE_PERIOD * 1e9)
-    return base_ns + episode_start + round(frame * materials.FRAME_INTERVAL * 1e9)
+    return base_ns + episode_start + round(frame * families.FRAME_INTERVAL * 1e9)
 
 
 def stamp_dict(stamp_ns: int) -> dict:
@@ -120,8 +119,11 @@ def _pose(position, orientation) -> dict:
 
 def instance_message(episode, episode_index: int, stamp_ns: int, frame_prefix: str = DEFAULT_FRAME_PREFIX) -> dict:
     """ad_msgs/SimInstance: the episode's ground truth and simulation settings."""
+    from . import materials  # the simulator's constants: here, so that importing this module loads no Warp
+    from .instances import SCALE
+
     instance = episode.instance
-    names = [n for n in materials.PARAMETER_NAMES if n in instance.parameters]
+    names = [n for n in families.PARAMETER_NAMES if n in instance.parameters]
     vx, vy, vz = (float(v) for v in instance.velocity)
     return {
         "header": _header(stamp_ns, f"{frame_prefix}/world"),
@@ -138,7 +140,7 @@ def instance_message(episode, episode_index: int, stamp_ns: int, frame_prefix: s
         "scale": float(SCALE),
         "camera_poses": [_pose(c.pose[:3, 3], rotation_quaternion(c.pose[:3, :3])) for c in episode.cameras],
         "grid_resolution": int(materials.GRID_RESOLUTION),
-        "frame_interval": float(materials.FRAME_INTERVAL),
+        "frame_interval": float(families.FRAME_INTERVAL),
         "frame_count": int(episode.positions.shape[0]),
         "substeps_per_frame": int(episode.substeps_per_frame),
         "gravity": float(materials.GRAVITY),
