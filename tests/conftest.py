@@ -10,15 +10,14 @@
 
 from __future__ import annotations
 
-import fcntl
 import importlib
 import itertools
 import os
-import tempfile
 from functools import lru_cache
 from pathlib import Path
 
 import pytest
+from ros_procs import DOMAIN_COUNT, DOMAIN_LOCK_DIR, hold_domain
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 WORKSPACE_INSTALL = REPO_ROOT / "ros_ws" / "install"
@@ -27,12 +26,8 @@ BUILD_HINT = "run ./setup.sh and source env.sh first (scripts/test.sh does both)
 # DDS discovery stays on this machine; before any rclpy import initialises a context.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
-# Domains 1..100 are valid for DDS on Linux. Tests take them in turn from the run's ROS_DOMAIN_ID
-# (scripts/test.sh picks a random one), so that a node left over from one test cannot talk to the
-# next, and each holds a lock file for its domain, so that concurrent runs on one machine never share
-# one (the kernel drops the lock if the process dies).
-DOMAIN_COUNT = 100
-DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "ad-ros-domain-locks"
+# Tests take domains in turn from the run's ROS_DOMAIN_ID (scripts/test.sh picks a random one), so that a
+# node left over from one test cannot talk to the next, each holding its domain's lock (ros_procs.hold_domain).
 _RUN_DOMAIN = int(os.environ.get("ROS_DOMAIN_ID", os.getpid() % DOMAIN_COUNT + 1))
 _domains = (((_RUN_DOMAIN - 1 + offset) % DOMAIN_COUNT) + 1 for offset in itertools.count())
 
@@ -63,15 +58,10 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 @pytest.fixture
 def ros_domain_id(monkeypatch: pytest.MonkeyPatch):
     """A ROS domain for this test alone, exported as ROS_DOMAIN_ID for the subprocesses it starts."""
-    DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
     for _ in range(DOMAIN_COUNT):
         domain = next(_domains)
-        lock = open(DOMAIN_LOCK_DIR / f"{domain}.lock", "w")
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            lock.close()  # another test on this machine is using it
-            continue
+        if (lock := hold_domain(domain)) is None:
+            continue  # another test or benchmark on this machine is using it
         with lock:
             monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
             yield domain

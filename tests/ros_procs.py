@@ -2,16 +2,35 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 import re
 import signal
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 ADRUN = REPO_ROOT / "scripts" / "adrun"
 _started: list[subprocess.Popen] = []
+# Domains 1..100 are valid for DDS on Linux whatever the participant count. Whoever uses one on this machine
+# (a test, a benchmark) holds a lock file for it, so that concurrent runs never share one.
+DOMAIN_COUNT = 100
+DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "ad-ros-domain-locks"
+
+
+def hold_domain(domain: int):
+    """The open, locked lock file of ROS domain `domain` (keep it open while using the domain; the kernel drops
+    the lock when the process dies), or None if another process on this machine holds it."""
+    DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
+    lock = open(DOMAIN_LOCK_DIR / f"{domain}.lock", "w")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.close()
+        return None
+    return lock
 
 
 def start(executable: str, domain: int, log: Path, **params) -> subprocess.Popen:
