@@ -457,6 +457,29 @@ def test_training_regl1_is_the_metric_regl1():
     assert union < 0.9 * metric
 
 
+def test_the_student_loss_weights_are_those_recorded_in_its_checkpoint(monkeypatch):
+    """The checkpoint records loss_weights (align, ce, regl1, nll); the CE weight was recorded but the loss
+    hard-coded 1. Each recorded weight now scales its term: changing one changes the loss by that term."""
+    from training import train_student
+
+    rng = torch.Generator().manual_seed(0)
+    out = {"logits": torch.randn(4, 3, generator=rng), "params": torch.rand(4, 4, generator=rng),
+           "params_logvar": torch.randn(4, 4, generator=rng), "z": torch.randn(4, 8, generator=rng)}
+    batch = {"masks": None, "valid": None, "label": torch.tensor([0, 1, 2, 1]), "target": torch.rand(4, 4, generator=rng),
+             "mask": torch.tensor([[1, 1, 0, 0], [1, 1, 1, 0], [0, 0, 0, 1], [1, 1, 1, 0]], dtype=torch.float32),
+             "z_t": torch.randn(4, 8, generator=rng)}
+
+    def loss(**weights):
+        for name, value in weights.items():
+            monkeypatch.setattr(train_student, name, value)
+        total, logs = train_student.student_loss("full", alpha=2.0)(lambda masks, valid: out, batch, True)
+        return float(total), logs
+
+    base, logs = loss(CE_WEIGHT=1.0, NLL_WEIGHT=0.05)
+    assert loss(CE_WEIGHT=3.0)[0] == pytest.approx(base + 2.0 * float(logs["ce"]), rel=1e-6)
+    assert loss(CE_WEIGHT=1.0, NLL_WEIGHT=0.15)[0] == pytest.approx(base + 0.1 * float(logs["nll"]), rel=1e-6)
+
+
 def test_teacher_output_shapes():
     model = Teacher(TEACHER_PRESETS["tiny"]).eval()
     out = model(torch.rand(3, 25, 1024, 15))
