@@ -235,6 +235,28 @@ def test_the_stream_is_served_while_a_clip_is_estimated(ros, model_paths):
     assert t.node.statistics()["received"] == 25
 
 
+def test_the_clip_service_outlives_a_failure_of_its_executor(ros, model_paths, monkeypatch):
+    """An error out of the clip service's executor ended its thread for good: ~/estimate never answered again,
+    while the stream went on. Now it is counted and warned about, and the service goes on."""
+    t = start(ros, model_paths["streaming"])
+    spin_once, failed = t.node.clip_executor.spin_once, threading.Event()
+
+    def failing_once(*args, **kwargs):
+        if not failed.is_set():
+            failed.set()
+            raise RuntimeError("a service failure")
+        return spin_once(*args, **kwargs)
+
+    monkeypatch.setattr(t.node.clip_executor, "spin_once", failing_once)
+    assert wait_for(lambda: failed.is_set() and t.node.statistics()["errors"] == 1)
+    client = t.client.create_client(EstimateMaterial, "/ad_estimator/estimate")
+    assert client.wait_for_service(timeout_sec=5)
+    future = client.call_async(EstimateMaterial.Request(frames=[image_msg(m, k * DT) for k, m in
+                                                                 enumerate(falling_masks(seed=3))]))
+    assert wait_for(future.done) and future.result().success, future.result()
+    assert t.node.clip_server.is_alive()
+
+
 def test_estimate_service_answers_a_clip(ros, model_paths):
     t = start(ros, model_paths["streaming"])
     client = t.client.create_client(EstimateMaterial, "/ad_estimator/estimate")
