@@ -21,7 +21,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, DistributedSampler, Subset
 from tqdm import tqdm
 
-from ad_estimator.cli import write_text_staged
+from ad_estimator.cli import staged, write_text_staged
 
 LAST = "last.pt"
 BEST = "best.pt"
@@ -123,11 +123,10 @@ def _on_cpu(obj):
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
-    """Atomic: a kill mid-write leaves the previous checkpoint intact. Tensors are saved from the
+    """Through cli.staged: a kill mid-write leaves the previous checkpoint intact. Tensors are saved from the
     CPU, so a checkpoint trained on a GPU opens with a bare torch.load on a CPU-only machine."""
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(_on_cpu(state), tmp)
-    os.replace(tmp, path)
+    with staged(path.parent) as folder:
+        torch.save(_on_cpu(state), folder / path.name)
 
 
 def _is_onnx(path: str | Path) -> bool:

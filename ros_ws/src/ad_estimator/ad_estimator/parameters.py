@@ -4,9 +4,9 @@ and the offline `estimate` (where the window's and images' ones are options) sha
 from __future__ import annotations
 
 from ad_estimator.images import DEFAULT_THRESHOLD, MAX_IMAGE_PIXELS
-from ad_sim import messages
 from ad_estimator.window import (DEFAULT_EVERY_N, DEFAULT_GAP_THRESHOLD, DEFAULT_MIN_FRAMES, DEFAULT_SLOT_TOLERANCE,
                                  MAX_SECONDS, FrameWindow)
+from ad_sim import messages
 
 DEFAULT_INPUT_TOPIC = messages.mask_topic(0)  # the simulator's first camera: what the node reads unless remapped
 MIN_DIAGNOSTICS_PERIOD = 0.01  # s; shorter is a busy loop of /diagnostics
