@@ -172,6 +172,7 @@ def test_single_instance_from_parameters_and_bad_parameters(ros_domain_id, tmp_p
     ("node", {"batch": 0}, "batch must be >= 1, got 0"),
     ("node", {"qos_depth": 2**31}, "qos_depth must be <= 2147483647, got 2147483648"),
     ("node", {"qos_depth": -3}, "qos_depth must be >= 1, got -3"),
+    ("node", {"ack_timeout": 0.0}, "ack_timeout must be > 0 (seconds), got 0.0"),
     ("node", {"real_time_factor": "abc"}, "real_time_factor must be a number, got 'abc'"),
     ("node", {"shape": "sphere", "youngs_modulus": "abc"}, "youngs_modulus must be a number, got 'abc'"),
     ("node", {"topic_prefix": "1bad"}, "Invalid topic name: topic name token must not start with a number: '1bad/instance'"),
@@ -214,8 +215,39 @@ def test_ctrl_c_does_not_wait_for_a_recorder_that_died(rclpy_context, ros_domain
     assert re.search(r"published (\d+) episode\(s\) \(episode \1 cut short by the stop\)", log), log
 
 
+SHORT_LEASE_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <participant profile_name="short_lease" is_default_profile="true"><rtps><builtin><discovery_config>
+    <leaseDuration><sec>8</sec></leaseDuration><leaseAnnouncement><sec>1</sec></leaseAnnouncement>
+  </discovery_config></builtin></rtps></participant>
+</profiles>
+"""
+
+
+def test_a_dead_subscriber_stalls_playback_for_ack_timeout_not_for_its_lease(ros_domain_id, tmp_path, monkeypatch):
+    """A recorder killed with SIGKILL stays matched until DDS drops it at its lease (8 s here, 20 s by
+    default). The node gives up waiting for it after ack_timeout (1 s here), warns, and plays on without
+    waiting until every topic is acknowledged again (the recorder dropped). It used to wait 10 s per topic,
+    so playback stood still until the lease ended. qos_depth 10 fills the window within an episode."""
+    profile = tmp_path / "short_lease.xml"
+    profile.write_text(SHORT_LEASE_PROFILE)
+    monkeypatch.setenv("FASTRTPS_DEFAULT_PROFILES_FILE", str(profile))  # the recorder's lease only
+    recorder = start("record", ros_domain_id, tmp_path / "record.log", output=str(tmp_path / "bag"))
+    monkeypatch.delenv("FASTRTPS_DEFAULT_PROFILES_FILE")
+    node = start("node", ros_domain_id, tmp_path / "node.log", real_time_factor=0, loop=True, wait_for_subscribers=1,
+                 ack_timeout=1.0, qos_depth=10, shape="sphere", youngs_modulus=5.0e4, poissons_ratio=0.3)
+    wait_for_log(tmp_path / "node.log", r"episode 1:", node, timeout=120)
+    recorder.send_signal(signal.SIGKILL)
+    recorder.wait()
+    warned = wait_for_log(tmp_path / "node.log", r"did not acknowledge within 1 s \(did one die or stall\?\)", node)
+    again = wait_for_log(tmp_path / "node.log", r"every topic's subscribers acknowledge again", node, timeout=60)
+    assert warned.start() < again.start()
+    wait_for_log(tmp_path / "node.log", r"acknowledge again.*\n(?:.*\n)*?.*episode \d+:", node)  # and plays on
+    assert stop(node, signal.SIGINT) == 0
+
+
 def test_help_lists_the_parameters():
-    for executable, parameters in (("node", ("instances", "real_time_factor", "views", "wait_for_subscribers")), ("record", ("output", "topics", "max_bag_size"))):
+    for executable, parameters in (("node", ("instances", "real_time_factor", "views", "wait_for_subscribers", "ack_timeout")), ("record", ("output", "topics", "max_bag_size"))):
         result = subprocess.run([str(ADRUN), "ad_sim", executable, "--help"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
         assert result.returncode == 0, result.stderr
         assert f"ros2 run ad_sim {executable}" in result.stdout

@@ -15,6 +15,10 @@ with 20 ms heartbeats (ad_sim/data/dds/fast_heartbeat.xml) unless FASTRTPS_DEFAU
 is set already: about 60 episodes/s reach the recorder (benchmarks/record_throughput.py).
 Set wait_for_subscribers to N to start playing only once every simulator topic has N matched
 subscriptions (e.g. a recorder started first).
+A subscriber that dies without leaving (kill -9, a lost link) stays matched until DDS drops it at its
+lease (20 s on Fast DDS). After ack_timeout seconds without its acknowledgements the node publishes on
+without waiting on that topic again until its subscribers acknowledge again, so playback stalls for about
+ack_timeout, not for the lease; a live subscriber that falls that far behind may lose messages meanwhile.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from . import materials, messages
 from .dds import MAX_QOS_DEPTH, declare_parameters, message_class, node_cli, number, qos_from_profile, use_fast_heartbeat
 
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
-ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on
+ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on (default)
 ACK_SLICE = 0.1  # s between looks at the stop flag while waiting for acknowledgements
 WORKER_JOIN_TIMEOUT = 10.0  # s; a stopped worker ends within one simulated frame, well under this
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
@@ -74,9 +78,10 @@ class SimPublishers:
     """Publishers of the simulator topics with the flow control described above."""
 
     def __init__(self, node: Node, views: int, prefix: str = messages.DEFAULT_PREFIX, depth: int = messages.QOS_DEPTH,
-                 stop: threading.Event | None = None):
+                 stop: threading.Event | None = None, ack_timeout: float = ACK_TIMEOUT):
         self.logger = node.get_logger()
         self.depth = depth
+        self.ack_timeout = ack_timeout
         self.stop = stop or threading.Event()  # once set, nobody waits for acknowledgements (a stopping node)
         self.by_topic = {}
         for topic, type_name in messages.topic_types(views, prefix).items():
@@ -84,6 +89,7 @@ class SimPublishers:
             qos = qos_from_profile({"depth": depth}, default=messages.topic_qos(topic, prefix))
             self.by_topic[topic] = (type_name, node.create_publisher(message_class(type_name), topic, qos))
         self.unacknowledged = dict.fromkeys(self.by_topic, 0)
+        self.unresponsive = set()  # topics not waited on (beyond a slice) since a timeout, until they are acknowledged
         self.published = 0
 
     def publish(self, topic: str, data: dict) -> None:
@@ -99,16 +105,27 @@ class SimPublishers:
         self.published += 1
 
     def wait_for_acks(self, topics=None) -> None:
-        """Up to ACK_TIMEOUT per topic, in slices, so that a stop (a Ctrl-C while a subscriber is
-        gone or stalled) ends the wait within a slice instead of seconds later."""
+        """Wait for the subscribers of `topics` (all by default) to acknowledge what was published, up to
+        ack_timeout for all of them together, in slices, so that a stop (a Ctrl-C while a subscriber is gone
+        or stalled) ends the wait within a slice. Once a topic lets the timeout pass, every topic is looked at
+        for one slice only until its subscribers acknowledge again: the silent subscriber is likely a dead
+        process, matched on every topic it subscribed to."""
+        deadline = time.monotonic() + self.ack_timeout
         for topic in self.by_topic if topics is None else topics:
-            deadline = time.monotonic() + ACK_TIMEOUT
             while not self.by_topic[topic][1].wait_for_all_acked(Duration(seconds=ACK_SLICE)):
-                if self.stop.is_set():
+                if self.stop.is_set() or topic in self.unresponsive:
                     break
                 if time.monotonic() >= deadline:
-                    self.logger.warning(f"subscribers of {topic} did not acknowledge within {ACK_TIMEOUT} s")
+                    self.logger.warning(f"subscribers of {topic} did not acknowledge within {self.ack_timeout:g} s "
+                                        "(did one die or stall?); publishing on without waiting for acknowledgements "
+                                        "until they come again: a live subscriber this far behind may lose messages")
+                    self.unresponsive.update(self.by_topic)
                     break
+            else:
+                if topic in self.unresponsive:
+                    self.unresponsive.discard(topic)
+                    if not self.unresponsive:
+                        self.logger.info("every topic's subscribers acknowledge again (the silent one left or caught up)")
             self.unacknowledged[topic] = 0
 
     def matched(self, count: int) -> bool:
@@ -137,6 +154,7 @@ PARAMETERS = (
     ("frame_id", messages.DEFAULT_FRAME_PREFIX, "prefix of the frame ids: <frame_id>/world, <frame_id>/view_<k>"),
     ("qos_depth", messages.QOS_DEPTH, "keep-last depth of the publishers (the flow control window)"),
     ("wait_for_subscribers", 0, "start playing once every topic has this many subscriptions"),
+    ("ack_timeout", ACK_TIMEOUT, "s to wait for reliable subscribers' acknowledgements before publishing on without them"),
 )
 
 
@@ -153,6 +171,9 @@ class SimNode(Node):
                             ("wait_for_subscribers", 0)):
             if self.param(name) < least:
                 raise ValueError(f"{name} must be >= {least}, got {self.param(name)}")
+        ack_timeout = number(self, "ack_timeout")
+        if not 0 < ack_timeout < math.inf:
+            raise ValueError(f"ack_timeout must be > 0 (seconds), got {ack_timeout}")
         if self.param("qos_depth") > MAX_QOS_DEPTH:  # rclpy would fail inside its QoS struct
             raise ValueError(f"qos_depth must be <= {MAX_QOS_DEPTH}, got {self.param('qos_depth')}")
         if self.param("device") != "cpu":  # (Warp always has its CPU; checking starts Warp, with its banner)
@@ -162,7 +183,7 @@ class SimNode(Node):
         self.prefix = self.param("topic_prefix").rstrip("/")
         self.instances = self._load_instances()
         self.views = self.param("views") or max(instance.views for instance in self.instances)
-        self.sim_publishers = SimPublishers(self, self.views, self.prefix, self.param("qos_depth"), stop)
+        self.sim_publishers = SimPublishers(self, self.views, self.prefix, self.param("qos_depth"), stop, ack_timeout)
         self.episodes = queue.Queue(maxsize=2 * self.param("batch"))
         self.worker = threading.Thread(target=self.simulate_ahead, name="simulate", daemon=True)
         self.failed = False
