@@ -230,6 +230,31 @@ def test_rejects_particles_outside_the_domain():
         simulate([scene(pts, "jelly", {"youngs_modulus": 1e5, "poissons_ratio": 0.3})])
 
 
+def test_rejects_bad_time_step_mass_and_record_arguments():
+    """Each of these used to run without a word: frame_interval <= 0 (dt <= 0, time runs backwards),
+    NaN volume or infinite density (NaN mass: every particle ends in the clamp's corner), a boolean or float
+    `record` (cast to rows 0/1 or truncated)."""
+    pts = box((0.5, 0.5, 0.5), (0.05, 0.05, 0.05))
+    jelly = {"youngs_modulus": 1e5, "poissons_ratio": 0.3}
+    for interval in (0.0, -FRAME_INTERVAL, math.nan):
+        with pytest.raises(ValueError, match="frame_interval"):
+            simulate([scene(pts, "jelly", jelly)], frame_count=2, frame_interval=interval)
+        with pytest.raises(ValueError, match="frame_interval"):
+            substeps_for("jelly", jelly, frame_interval=interval)
+    for volume, density in ((math.nan, 1000.0), (SPACING**3, math.inf), (-1.0, 1000.0)):
+        bad = Scene(pts, np.zeros(3, np.float32), "jelly", jelly, volume, density=density)
+        with pytest.raises(ValueError, match="finite and positive"):
+            simulate([bad], frame_count=2)
+    for record in (np.ones(len(pts), bool), np.array([0.5, 1.7])):
+        with pytest.raises(ValueError, match="integer particle indices"):
+            simulate([scene(pts, "jelly", jelly, record=record)], frame_count=2)
+    # Integer indices of any integer type (and an empty record) are fine.
+    (res,) = simulate([scene(pts, "jelly", jelly, record=np.array([3, 1], np.uint16))], frame_count=2)
+    np.testing.assert_array_equal(res.positions[0], pts[[3, 1]])
+    (res,) = simulate([scene(pts, "jelly", jelly, record=[])], frame_count=2)
+    assert res.positions.shape == (2, 0, 3)
+
+
 def test_shared_memory_p2g_matches_plain_p2g():
     """The CUDA P2G (shared-memory patches) run on Warp's CPU block emulation equals the plain P2G."""
     scenes = [

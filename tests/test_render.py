@@ -189,6 +189,22 @@ def test_batched_farthest_point_sampling_matches_a_reference():
         np.testing.assert_array_equal(chosen, reference(points, 64, start))
 
 
+def test_farthest_point_sampling_rejects_starts_outside_their_own_set():
+    """The sets are concatenated on the device: a start past its set's end (or negative) used to pick a point
+    of the neighbouring set (or read out of bounds) and return its index without a word."""
+    rng = np.random.default_rng(3)
+    sets = [rng.uniform(size=(40, 3)), rng.uniform(size=(30, 3))]
+    for starts in ([40, 0], [0, -1], [0, 30], [0.0, 1.5]):
+        with pytest.raises(ValueError, match="start .* of point set"):
+            render.farthest_point_sampling_batch(sets, 5, starts)
+    with pytest.raises(ValueError, match="one start per point set"):
+        render.farthest_point_sampling_batch(sets, 5, [0])
+    with pytest.raises(ValueError, match="at least 1 point"):
+        render.farthest_point_sampling_batch(sets, 0, [0, 0])
+    picked = render.farthest_point_sampling_batch(sets, 5, [39, np.int64(29)])
+    assert [p[0] for p in picked] == [39, 29] and all(p.max() < len(s) for p, s in zip(picked, sets))
+
+
 def test_vertex_advection_follows_particles():
     rng = np.random.default_rng(4)
     particles = rng.uniform(0.3, 0.7, size=(500, 3))

@@ -59,6 +59,19 @@ def test_copy_with_another_material_keeps_initial_state_and_cameras_and_clips_in
     assert candidate_from_row("sand", [1e5, 0.3, np.nan, 0.5]) == ("sand", {"friction_angle": 0.5})
 
 
+def test_a_candidate_cannot_change_a_family_s_fixed_parameters():
+    """Sand's E and nu are fixed (SPEC 6): a candidate that carries values for them (a full row of predictions)
+    is simulated with the fixed ones, as its family's law defines, not with E = 1e6 (9x the substeps)."""
+    original = tiny_instance(SAND)
+    full_row = {"youngs_modulus": 1e6, "poissons_ratio": 0.45, "friction_angle": 0.5}
+    copy = with_material(original, "sand", full_row)
+    assert copy.parameters == {"youngs_modulus": 1e5, "poissons_ratio": 0.3, "friction_angle": 0.5}
+    # A fixed value the model left undefined does not matter either; sampled values are still checked.
+    assert with_material(original, "sand", {"youngs_modulus": math.nan, "friction_angle": 0.5}).parameters == copy.parameters
+    with pytest.raises(ValueError, match="unphysical"):
+        with_material(original, "sand", {"friction_angle": math.nan})
+
+
 def test_resimulating_the_truth_reproduces_the_masks_and_another_parameter_does_not():
     instance = tiny_instance(SAND)
     observed = simulate_batch([instance])[0].masks[0]  # what the generator records

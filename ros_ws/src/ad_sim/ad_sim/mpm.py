@@ -110,6 +110,12 @@ class SceneResult:
     all_velocities_final: np.ndarray = field(repr=False)  # (N, 3) float32
 
 
+def _check_frame_interval(frame_interval: float) -> None:
+    # dt = frame_interval / n_s: zero or a negative interval would run the scene backwards in time.
+    if not (math.isfinite(frame_interval) and frame_interval > 0):
+        raise ValueError(f"frame_interval must be a positive number of seconds, got {frame_interval!r}")
+
+
 def substeps_for(
     family: str,
     parameters: dict,
@@ -122,6 +128,7 @@ def substeps_for(
     c = sqrt((lambda + 2 mu) / rho) is the P-wave speed; `speed` bounds the material's speed
     (default: free fall through the whole domain; scene_substeps() uses the scene's own bound).
     """
+    _check_frame_interval(frame_interval)
     p = full_parameters(family, parameters)
     mu, lam = lame(p["youngs_modulus"], p["poissons_ratio"])
     wave = math.sqrt((lam + 2.0 * mu) / density)
@@ -420,8 +427,12 @@ def _validate(scene: Scene, number: int) -> np.ndarray:
             f"(unit cube minus the boundary layer); got [{pos.min():.4f}, {pos.max():.4f}]. "
             "Scale/translate the shape into the domain above the ground."
         )
-    if scene.particle_volume <= 0 or scene.density <= 0:
-        raise ValueError(f"scene {number}: particle_volume and density must be positive")
+    # (NaN passes a plain "<= 0" test, and NaN or inf mass sends every particle into a corner.)
+    if not all(math.isfinite(q) and q > 0 for q in (float(scene.particle_volume), float(scene.density))):
+        raise ValueError(
+            f"scene {number}: particle_volume and density must be finite and positive, "
+            f"got {scene.particle_volume!r} and {scene.density!r}"
+        )
     return pos
 
 
@@ -491,12 +502,17 @@ def simulate(
         return []
     if frame_count < 1:
         raise ValueError("frame_count must be >= 1")
+    _check_frame_interval(frame_interval)
     positions = [_validate(s, i) for i, s in enumerate(scenes)]
     counts = np.array([len(p) for p in positions], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)])
     records = []
     for i, (s, n) in enumerate(zip(scenes, counts)):
-        rec = np.arange(n) if s.record is None else np.asarray(s.record, dtype=np.int64).reshape(-1)
+        rec = np.arange(n) if s.record is None else np.asarray(s.record).reshape(-1)
+        if len(rec) and rec.dtype.kind not in "iu":
+            # A boolean mask or float indices would be cast to the wrong rows without a word.
+            raise ValueError(f"scene {i}: record must hold integer particle indices, got dtype {rec.dtype}")
+        rec = rec.astype(np.int64)
         if len(rec) and (rec.min() < 0 or rec.max() >= n):
             raise ValueError(f"scene {i}: record indices must lie in [0, {n})")
         records.append(rec)

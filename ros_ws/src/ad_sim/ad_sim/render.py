@@ -170,8 +170,18 @@ def farthest_point_sampling_batch(
     sizes = np.array([len(p) for p in point_sets], dtype=np.int64)
     if len(sizes) == 0:
         return []
+    if count < 1:
+        raise ValueError(f"farthest point sampling picks at least 1 point, asked for {count}")
     if sizes.min() < count:
         raise ValueError(f"farthest point sampling needs at least {count} points, got {int(sizes.min())}")
+    starts = np.asarray(starts).reshape(-1)
+    if len(starts) != len(sizes):
+        raise ValueError(f"need one start per point set, got {len(starts)} for {len(sizes)} sets")
+    # The sets are concatenated: an index outside its own set would silently start in a neighbour's.
+    bad = [i for i, (start, size) in enumerate(zip(starts, sizes)) if not 0 <= start < size]
+    if starts.dtype.kind not in "iu" or bad:
+        i = bad[0] if bad else 0
+        raise ValueError(f"start {starts[i]!r} of point set {i} is not an index into its {sizes[i]} points")
     offsets = np.concatenate([[0], np.cumsum(sizes)])
     with wp.ScopedDevice(device):
         points = wp.array(np.concatenate(point_sets).astype(np.float32), dtype=wp.vec3)

@@ -21,7 +21,7 @@ import numpy as np
 
 from .episode import simulate_batch
 from .instances import Instance
-from .materials import FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS, full_parameters
+from .materials import FAMILY_RANGES, FIXED_PARAMETERS, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS, full_parameters
 from .render import MASK_SIZE
 
 #: PSNR (dB) of two identical mask videos.
@@ -31,12 +31,15 @@ Candidate = tuple[str, Mapping[str, float]]  # (family, SI parameters, radians f
 
 
 def clip_to_family_range(family: str, parameters: Mapping[str, float]) -> dict[str, float]:
-    """The family's full parameter set with each sampled parameter clipped into its sampling range.
+    """The family's full parameter set with each sampled parameter clipped into its sampling range
+    and each fixed one (sand's E and nu) at its fixed value, whatever value was given for it.
 
     The simulator's stability (and its substep count, i.e. cost) is validated over the sampling
-    ranges (docs/simulator.md); a model may predict slightly outside them.
+    ranges (docs/simulator.md); a model may predict slightly outside them, and a family's law is
+    only defined with its fixed values (a full row of predictions also holds E and nu for sand).
     """
-    out = full_parameters(family, dict(parameters))
+    given = {name: value for name, value in parameters.items() if name not in FIXED_PARAMETERS.get(family, {})}
+    out = full_parameters(family, given)
     for name in SAMPLED_PARAMETERS[family]:
         low, high, _ = FAMILY_RANGES[family][name]
         out[name] = float(min(max(out[name], low), high))
