@@ -294,6 +294,30 @@ def test_training_on_the_test_splits_is_warned_about(tmp_path, capsys):
             "instances of the benchmark's test splits") in capsys.readouterr().err
 
 
+def test_teacher_and_student_never_validate_on_an_episode_they_train_on(tmp_path, monkeypatch):
+    """Bags holding some episodes twice (another recording of them): both stages keep each episode on one side."""
+    from training import train_student, train_teacher
+
+    write_synthetic_bag(tmp_path / "bags" / "a", 6, views=1, seed=1)
+    write_synthetic_bag(tmp_path / "bags" / "b", 6, views=2, seed=1)  # the same episodes, recorded again
+    sides = {}
+
+    def fake_fit(name, instances):
+        def fit(model, train_set, val_set, *args, **kwargs):
+            ds = train_set.ds
+            sides[name] = [{ds.episode_ids[i] for i in instances(s)} for s in (train_set, val_set)]
+        return fit
+
+    monkeypatch.setattr(train_teacher, "fit", fake_fit("teacher", lambda s: s.instances))
+    monkeypatch.setattr(train_student, "fit", fake_fit("student", lambda s: s.ds.video_instance[s.videos]))
+    for seed in range(3):
+        run_teacher(_args(tmp_path / "bags", tmp_path / "t", tmp_path / "cache", val_fraction=0.5, seed=seed))
+        run_student(_args(tmp_path / "bags", tmp_path / "s", tmp_path / "cache", val_fraction=0.5, seed=seed,
+                          kind="streaming", ablation="none", alpha=0.5, full_clips=False))
+        for name, (train, val) in sides.items():
+            assert train and val and not train & val, (name, seed, train & val)
+
+
 def test_earlier_observed_slots_skip_unobserved_slots_and_repeat_the_oldest():
     valid = torch.tensor([[1.0, 1, 1, 1, 1], [1, 0, 1, 0, 1], [0, 1, 1, 1, 0]])
     sources = earlier_observed_slots(valid, 3)

@@ -281,6 +281,29 @@ def test_the_cache_commands_input_size_is_checked_by_argparse(bags, tmp_path, ca
     assert not (tmp_path / "cache").exists()
 
 
+def test_an_uncompressed_bag_rewritten_in_the_middle_is_not_served_from_its_stale_cache(tmp_path):
+    """Uncompressed chunks (generate --compression none) of fixed-size messages keep every size, so a bag
+    rewritten with another middle episode had the same size, first and last MiB: the key, and with it
+    the old episode's labels, stayed."""
+    def write(seeds):
+        shutil.rmtree(tmp_path / "bags", ignore_errors=True)
+        with BagWriter(tmp_path / "bags" / "bag", compression="none") as writer:  # ~1.6 MB per episode
+            write_episodes(writer, [synthetic_episode(i, seed, 1) for i, seed in enumerate(seeds)], 0)
+
+    write([1, 1, 1])
+    before = data.load_dataset(tmp_path / "bags", tmp_path / "cache", progress=False)
+    write([1, 2, 1])  # the middle episode's parameters and motion change, none of the sizes
+    after = data.load_dataset(tmp_path / "bags", tmp_path / "cache", progress=False)
+    assert after.shards != before.shards
+    expected = synthetic_episode(1, 2, 1).instance.parameters
+    assert after.params_si[1, 0] == pytest.approx(expected["youngs_modulus"])
+    assert before.params_si[1, 0] != pytest.approx(expected["youngs_modulus"])
+    # Compressed bags keep the keys they had (their chunk sizes already change with their content).
+    for bag, hashed in ((tmp_path / "bags" / "bag", True), (write_synthetic_bag(tmp_path / "zstd", 1, views=1), False)):
+        with open(next(bag.glob("*.mcap")), "rb") as f:
+            assert bool(data._uncompressed_chunk_crcs(f)) == hashed
+
+
 def test_missing_bags_error_says_what_to_do(tmp_path):
     with pytest.raises(FileNotFoundError, match="ad_sim.generate"):
         data.find_bags(tmp_path)
@@ -292,6 +315,26 @@ def test_split_is_deterministic_and_disjoint():
     np.testing.assert_array_equal(train, again[0])
     assert len(val) == 10 and not set(train) & set(val) and len(train) + len(val) == 50
     assert not np.array_equal(val, data.split_instances(50, 0.2, seed=8)[1])
+
+
+def test_an_episode_in_two_bags_is_never_on_both_sides_of_the_split(tmp_path, caplog):
+    """A bag and its copy under --bags (or the same episodes recorded again in another bag) counted
+    each episode twice, and the split, drawn over instances, validated on episodes it trained on."""
+    write_synthetic_bag(tmp_path / "bags" / "a", 6, views=2, seed=1)
+    write_synthetic_bag(tmp_path / "bags" / "b", 3, views=1, seed=1)  # episodes 0..2 again, another recording
+    shutil.copytree(tmp_path / "bags" / "a", tmp_path / "bags" / "backup" / "a")  # the same recording
+    with caplog.at_level(logging.WARNING, logger="training.data"):
+        ds = data.load_dataset(tmp_path / "bags", tmp_path / "cache", progress=False)
+    assert len(ds) == 6 + 3 and "same recording" in caplog.text  # the copy is read once
+    ids = np.array(ds.episode_ids)
+    for seed in range(8):
+        train, val = ds.split(0.3, seed)
+        assert len(train) + len(val) == len(ds) and len(val) and not set(ids[train]) & set(ids[val]), seed
+    # Distinct episodes split as before (a run resumed across this change keeps its validation set).
+    for seed in range(3):
+        keyed = data.split_instances(40, 0.2, seed, keys=[("e", i) for i in range(40)])
+        for a, b in zip(keyed, data.split_instances(40, 0.2, seed)):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_resized_videos_are_area_averaged(bags, tmp_path):

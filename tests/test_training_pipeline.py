@@ -30,11 +30,14 @@ def _not_json(constant: str):
 
 @pytest.mark.parametrize("argv", [["teacher", "--device", "gpu"], ["student", "--epochs", "0"],
                                   ["teacher", "--threads", "-3"], ["student", "--val-fraction", "1.5"],
-                                  ["teacher", "--batch-size", "0"], ["pipeline", "--device", "gpu"]])
+                                  ["teacher", "--batch-size", "0"], ["pipeline", "--device", "gpu"],
+                                  ["teacher", "--seed", "-1"], ["student", "--seed", "4294967296"],
+                                  ["export", "--seed", "-1"], ["pipeline", "--seed", "-3"],
+                                  ["baseline", "--seed", "-1"], ["resim-psnr", "--seed", "-2"]])
 def test_bad_training_options_are_refused_before_any_work(argv, capsys):
     """Each once got as far as torch (a traceback), trained nothing with exit 0, or was accepted."""
     with pytest.raises(SystemExit) as exit_info:
-        main([*argv, "--bags", "b", "--out", "o"] if argv[0] != "pipeline" else argv)
+        main([*argv, "--bags", "b", "--out", "o"] if argv[0] not in ("pipeline", "baseline", "resim-psnr") else argv)
     assert exit_info.value.code == 2
     assert f"argument {argv[1]}: expected" in capsys.readouterr().err
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ad_estimator.cli import write_text_staged
+from ad_estimator.cli import seed, write_text_staged
 from ad_estimator.metrics import Predictions, compute_metrics, format_table, json_text
 from ad_sim import families
 from ad_sim.instances import Instance, benchmark
@@ -188,7 +188,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--parallel", type=int, default=16,
                    help="instances optimised together; one simulation batch = parallel x popsize scenes")
     p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N")
-    p.add_argument("--seed", type=int, default=0, help="seeds the subset and every instance's CMA-ES")
+    p.add_argument("--seed", type=seed, default=0, help="seeds the subset and every instance's CMA-ES")
     p.add_argument("--out", help="output JSON (default runs/baseline/<size>-<split>.json, or <bags name>.json)")
     p.add_argument("--no-progress", action="store_true")
     return p

@@ -6,8 +6,10 @@ message (ad_sim.rosbag.group_episodes) and a frame's index is its stamp offset f
 instance's stamp in FRAME_INTERVAL units.
 
 Cache: one folder per bag (a rosbag2 folder, or a lone .mcap file), `<cache>/<key>/`, key =
-sha256 over CACHE_VERSION and, per .mcap file, its name, size and first and last MiB (the MCAP
-summary and footer sit at the end, so any rewrite changes the key). Contents:
+sha256 over CACHE_VERSION and, per .mcap file, its name, size, first and last MiB (the MCAP
+summary and footer sit at the end: a compressed chunk's size there changes with its content) and
+the CRC of each uncompressed chunk (whose size does not), so any rewrite changes the key. A bag
+found twice under --bags (a copy) is read once. Contents:
   meta.json            episode ids, shapes, splits, materials, seeds; source_problems: what was
                        missing or unreadable in the bag (truncated files, skipped episodes), warned
                        again on every use of the cache
@@ -78,6 +80,35 @@ def has_grey_levels(episodes: list[dict]) -> bool:
     return any(np.any((video != 0) & (video != 255)) for ep in episodes for video in ep["videos"].values())
 
 
+def _uncompressed_chunk_crcs(f) -> bytes:
+    """The content CRCs of an MCAP file's uncompressed chunks, read from their record headers (a few
+    bytes each, found through the summary), in file order. The first and last MiB miss a change in
+    the middle of a bag whose sizes stay the same, which uncompressed chunks of fixed-size messages
+    (`ad_sim.generate --compression none`) do: a compressed chunk's size changes with its content,
+    and the summary that lists the sizes is at the end. A file without a readable summary (cut
+    short) gives nothing here: its size and ends are its key."""
+    from mcap.reader import SeekingReader
+
+    try:
+        f.seek(0)  # (the reader checks the magic where the stream stands)
+        summary = SeekingReader(f).get_summary()
+    except Exception:  # no footer or summary: a truncated file (read in recover mode)
+        return b""
+    crcs = []
+    for chunk in sorted(summary.chunk_indexes if summary else [], key=lambda c: c.chunk_start_offset):
+        if chunk.compression:
+            continue
+        # Chunk record: opcode (1), record length (8), message start and end time (8 + 8), uncompressed
+        # size (8), then the uncompressed CRC (4).
+        f.seek(chunk.chunk_start_offset + 33)
+        crc = f.read(4)
+        if crc == bytes(4):  # written without CRCs: the chunk itself
+            f.seek(chunk.chunk_start_offset)
+            crc = hashlib.sha256(f.read(chunk.chunk_length)).digest()
+        crcs.append(crc)
+    return b"".join(crcs)
+
+
 def bag_key(bag: Path) -> str:
     """Content key of one bag (see the module docstring)."""
     h = hashlib.sha256(f"v{CACHE_VERSION}".encode())
@@ -88,6 +119,7 @@ def bag_key(bag: Path) -> str:
             h.update(f.read(_HASH_BLOCK))
             f.seek(max(0, size - _HASH_BLOCK))
             h.update(f.read(_HASH_BLOCK))
+            h.update(_uncompressed_chunk_crcs(f))  # nothing for compressed chunks: their keys stay as they were
     return h.hexdigest()[:32]
 
 
@@ -313,6 +345,17 @@ class Dataset:
             h.update(f"{episode_id}:{seed}\n".encode())
         return h.hexdigest()[:12]
 
+    def episode_keys(self) -> list[tuple[str, int]]:
+        """Per instance, which simulated episode it is (its id and seed, as `fingerprint` names it): the
+        same for an episode found in two bags (say, regenerated with another shard count, or repaired
+        beside the original)."""
+        return list(zip(self.meta["episode_id"], self.meta["seed"]))
+
+    def split(self, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """The train/validation split of these instances (split_instances), every copy of an episode on
+        one side: with a copy on each, validation would score episodes the model trained on."""
+        return split_instances(len(self), val_fraction, seed, self.episode_keys())
+
     def test_split_warning(self, bags) -> str | None:
         """A warning when these training instances include benchmark test instances (a --bags that
         points at the folder above the splits), which would score the model on what it trained on."""
@@ -369,6 +412,9 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True,
     paths = find_bags(bags)
     for path in tqdm(paths, desc="cache bags", disable=not progress, unit="bag"):
         folder = cache_dir / (bag_key(path) + ("-coverage" if coverage else ""))
+        if folder in shards:  # a copy of a bag already read (its episodes would count twice)
+            log.warning("%s holds the same recording as a bag read before (cache %s); read once", path, folder.name)
+            continue
         if (folder / "meta.json").exists():
             source_problems = shard_meta(folder)["source_problems"]
             for problem in source_problems:
@@ -400,12 +446,24 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True,
     return Dataset(shards, problems)
 
 
-def split_instances(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Deterministic train/val split of instance indices (all views of an instance stay together)."""
-    order = np.random.default_rng(seed).permutation(n)
-    n_val = int(round(n * val_fraction)) if n > 1 else 0
-    n_val = min(max(n_val, 1 if val_fraction > 0 and n > 1 else 0), n - 1) if n > 1 else 0
-    return np.sort(order[n_val:]), np.sort(order[:n_val])
+def split_instances(n: int, val_fraction: float, seed: int, keys=None) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic train/val split of instance indices (all views of an instance stay together).
+    With `keys` (one per instance, e.g. Dataset.episode_keys()) instances with the same key go to the
+    same side, so an episode recorded in two bags is never trained on and validated on; with distinct
+    keys the split is the one without them."""
+    if keys is None:
+        groups = np.arange(n)
+    else:  # group numbers in order of first appearance: distinct keys number the instances themselves
+        first: dict = {}
+        groups = np.array([first.setdefault(key, len(first)) for key in keys], dtype=np.int64)
+        if len(groups) != n:
+            raise ValueError(f"{len(groups)} keys for {n} instances")
+    m = int(groups.max()) + 1 if n else 0
+    order = np.random.default_rng(seed).permutation(m)
+    n_val = int(round(m * val_fraction)) if m > 1 else 0
+    n_val = min(max(n_val, 1 if val_fraction > 0 and m > 1 else 0), m - 1) if m > 1 else 0
+    val = np.isin(groups, order[:n_val])
+    return np.flatnonzero(~val), np.flatnonzero(val)
 
 
 def resize_masks(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:

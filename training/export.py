@@ -27,7 +27,7 @@ from ad_sim.materials import (
     PARAMETER_NAMES,
     PARAMETER_RANGES,
 )
-from ad_estimator.cli import staged
+from ad_estimator.cli import seed, staged
 from ad_estimator.model import frame_inputs
 from training.engine import weights_digest
 from training.evaluate import metrics_path
@@ -220,7 +220,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--checkpoint", required=True, help="student checkpoint (best.pt or last.pt)")
     p.add_argument("--out", required=True, help="output <name>.onnx")
     p.add_argument("--model-id", help="ad.model_id (default: <name>-<kind>-<ablation>-<weights hash>)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the verification input")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the verification input")
     return p
 
 

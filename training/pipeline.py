@@ -12,7 +12,7 @@ import time
 from argparse import Namespace
 from pathlib import Path
 
-from ad_estimator.cli import count, fraction, positive, staged, torch_device_or_auto, write_text_staged
+from ad_estimator.cli import count, fraction, positive, seed, staged, torch_device_or_auto, write_text_staged
 from ad_estimator.metrics import compute_metrics, format_table, json_text
 from ad_sim.materials import FRAME_COUNT
 from training import data, evaluate, export, train_student, train_teacher
@@ -67,7 +67,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
         per_size = ", ".join(f"{epochs[i]} for {size}" for size, epochs in EPOCHS.items())
         p.add_argument(f"--{stage}-epochs", type=positive, help=f"{stage} epochs (default: {per_size})")
     p.add_argument("--val-fraction", type=fraction, default=0.1, help="instances held out for validation")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--device", type=torch_device_or_auto, default="auto", help="auto | cpu | cuda | cuda:<index>")
     p.add_argument("--threads", type=count, default=0, help="torch CPU threads (0: default)")
     p.add_argument("--install", help="copy the `full` student (without one in --ablations, the last trained) here "

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ad_estimator.cli import write_text_staged
+from ad_estimator.cli import seed, write_text_staged
 from ad_estimator.metrics import json_text
 from ad_sim.instances import Instance
 from ad_sim.materials import FAMILIES, FRAME_COUNT, SAMPLED_PARAMETERS, full_parameters
@@ -152,7 +152,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--model", required=True, help="exported student .onnx (for streaming: the temporal head file)")
     p.add_argument("--bags", required=True, help="evaluation bags (a bag folder or a folder of bags)")
     p.add_argument("--instances", type=int, default=0, help="a seeded random subset of this many episodes (0: all)")
-    p.add_argument("--seed", type=int, default=0, help="seeds the subset")
+    p.add_argument("--seed", type=seed, default=0, help="seeds the subset")
     p.add_argument("--device", default="cpu", help="Warp device for the re-simulation: cpu, cuda, cuda:N")
     p.add_argument("--out", help="output JSON (default runs/resim_psnr/<model id>-<bags name>.json)")
     p.add_argument("--no-progress", action="store_true")

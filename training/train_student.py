@@ -235,7 +235,7 @@ def run(args) -> Path:
     resumed = check_resumable(Path(args.out), run_recipe, config.to_dict(), "student",
                               saved_config=lambda saved: StudentConfig.from_dict(saved).to_dict())
     ds, bags = load_run_data(args, rt, resumed, coverage=config.mask_levels == "coverage")
-    train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
+    train_idx, val_idx = ds.split(args.val_fraction, args.seed)
     targets = teacher_targets(teacher, ds, rt.device) if teacher and args.ablation != "none" else None
     frames = main_first(rt, lambda: data.resized_videos(ds, tuple(config.input_size),
                                                           rt.main and not args.no_progress))

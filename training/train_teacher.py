@@ -11,7 +11,7 @@ from torch.utils.data import Dataset as TorchDataset
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
-from ad_estimator.cli import count, fraction, non_negative_number, positive, positive_number, torch_device_or_auto
+from ad_estimator.cli import count, fraction, non_negative_number, positive, positive_number, seed, torch_device_or_auto
 from ad_estimator.metrics import Predictions
 from ad_sim.materials import FRAME_COUNT, PARAMETER_NAMES, denormalise
 from training import data
@@ -164,7 +164,7 @@ def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr
                    help="floor of the cosine schedule (approached over the last steps)")
     p.add_argument("--weight-decay", type=non_negative_number, default=1e-4, help="AdamW weight decay")
     p.add_argument("--val-fraction", type=fraction, default=0.1, help="instances held out for validation")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=seed, default=0,
                    help="seeds initialisation, the validation split (--val-fraction), batch order, "
                         "augmentation and the students' random prefixes")
     p.add_argument("--device", type=torch_device_or_auto, default="auto",
@@ -229,7 +229,7 @@ def run(args) -> Path:
     config = TEACHER_PRESETS[args.size]
     resumed = check_resumable(Path(args.out), recipe(args, rt), config.to_dict(), "teacher")
     ds, bags = load_run_data(args, rt, resumed)
-    train_idx, val_idx = data.split_instances(len(ds), args.val_fraction, args.seed)
+    train_idx, val_idx = ds.split(args.val_fraction, args.seed)
     model = Teacher(config).to(rt.device)
     on_device = None
     if wants_on_device(args.trajectories_on_device, rt):

@@ -26,6 +26,14 @@ def positive(text: str) -> int:
     return int(text)
 
 
+def seed(text: str) -> int:
+    """argparse type of --seed: what NumPy's global seed takes, 0 to 2**32 - 1 (beyond, NumPy fails later
+    without naming the option)."""
+    if not text.isdigit() or int(text) >= 2 ** 32:
+        raise argparse.ArgumentTypeError(f"expected a whole number from 0 to {2 ** 32 - 1}, got {text!r}")
+    return int(text)
+
+
 def _finite(text: str) -> float:
     try:
         return float(text) if math.isfinite(float(text)) else math.nan
