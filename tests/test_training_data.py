@@ -349,6 +349,24 @@ def test_resized_videos_are_area_averaged(bags, tmp_path):
     assert (tmp_path / "cache" / ds.shards[s].name / "videos_32x32.npy").exists()
 
 
+def test_resizing_a_shard_holds_a_slice_of_it_in_memory_not_all_of_it(bags, tmp_path, monkeypatch):
+    """At paper size one shard's videos are 3.7 GB of uint8, and resizing them at once took tens of GB of float32.
+    In slices, the peak is a slice's; the file equals the all-at-once result."""
+    import tracemalloc
+
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    monkeypatch.setattr(data, "RESIZE_SLICE_FRAMES", 30)  # one video of 25 frames per slice
+    videos = np.load(ds.shards[0] / "videos.npy")
+    tracemalloc.start()
+    try:
+        frames = data.resized_videos(ds, (64, 64), progress=False)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(videos) >= 4 and peak < videos.nbytes / 2, (peak, videos.nbytes)
+    np.testing.assert_array_equal(frames[0], data.resize_masks(videos, (64, 64)).astype(np.float16))
+
+
 def test_displacements_are_scaled_by_their_median_and_never_overflow_the_float16_cache():
     """SPEC 6's median scaling, unchanged for an ordinary episode; an object at rest for most frames
     (median near zero: one hard impact, then stillness) is scaled just enough that float16 keeps it finite."""

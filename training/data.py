@@ -28,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -54,6 +55,7 @@ log = logging.getLogger(__name__)
 CACHE_VERSION = 2  # 2: meta.json records source_problems (a version-1 cache cannot say its bag was complete)
 MASK_TOPIC = re.compile(r"^/ad_sim/view_(\d+)/mask$")
 _HASH_BLOCK = 1 << 20
+RESIZE_SLICE_FRAMES = 4096  # frames resized per slice by resized_videos (64 MB of 128x128 masks)
 
 
 def find_bags(root: str | Path) -> list[Path]:
@@ -493,7 +495,13 @@ def resized_videos(dataset: Dataset, size: tuple[int, int], progress: bool = Tru
         if not path.exists():
             videos = np.load(shard / "videos.npy", mmap_mode="r")
             tmp = path.with_name(path.name + f".tmp{os.getpid()}.npy")
-            np.save(tmp, resize_masks(np.asarray(videos), size).astype(np.float16))
+            # In slices: a paper-size shard resized at once would take tens of GB of float32.
+            resized = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=(*videos.shape[:-2], *size))
+            step = max(1, RESIZE_SLICE_FRAMES // math.prod(videos.shape[1:-2]))
+            for start in range(0, len(videos), step):
+                resized[start : start + step] = resize_masks(np.asarray(videos[start : start + step]), size)
+            resized.flush()
+            del resized
             os.replace(tmp, path)
         out.append(_shard_array(shard, path.name, mmap=True))
     return out
