@@ -16,6 +16,7 @@ from ad_sim.mpm import (
     Scene,
     group_by_substeps,
     scene_speed_bound,
+    scene_substeps,
     simulate,
     substeps_for,
 )
@@ -66,6 +67,7 @@ def test_substeps_follow_wave_speed_and_groups_sort():
     high = scene(box((0.5, 0.5, 0.7), (0.1, 0.1, 0.1)), "sand", {"friction_angle": 0.5}, velocity=(3.0, 0.0, 0.0))
     drop = high.positions[:, 2].max() - GROUND_Z
     assert scene_speed_bound(high) == pytest.approx(math.sqrt(9.0 + 2 * 9.8 * drop), rel=1e-6)
+    assert scene_speed_bound(high, gravity=0.0) == pytest.approx(3.0)
     pts = box((0.5, 0.5, 0.3), (0.1, 0.1, 0.1))
     scenes = [scene(pts, "jelly", {"youngs_modulus": E, "poissons_ratio": 0.3}) for E in (1e6, 2e4, 3e5, 5e4, 1e5)]
     groups = group_by_substeps(scenes, 2)
@@ -89,6 +91,10 @@ def test_transfers_conserve_momentum():
     (res_g,) = simulate([sc], frame_count=4, gravity=9.8, boundaries=False)
     dvz = res_g.all_velocities_final[:, 2].astype(np.float64).mean() - res.all_velocities_final[:, 2].mean()
     assert dvz == pytest.approx(-9.8 * 3 * FRAME_INTERVAL, rel=1e-3)
+    # The substep count allows for the gravity simulated (it assumed 9.8 whatever was asked).
+    assert res.substeps_per_frame < res_g.substeps_per_frame == scene_substeps(sc)
+    with pytest.raises(ValueError, match="gravity must be >= 0"):
+        simulate([sc], frame_count=1, gravity=-9.8)
 
 
 def _rigid_residual(a, b):

@@ -149,7 +149,7 @@ def group_by_substeps(scenes: list[Scene], max_batch: int, frame_interval: float
     return [order[i : i + max_batch] for i in range(0, len(order), max_batch)]
 
 
-def scene_speed_bound(scene: Scene) -> float:
+def scene_speed_bound(scene: Scene, gravity: float = GRAVITY) -> float:
     """Energy bound on any particle's speed: |v|^2 <= |v0|^2 + 2 g (z0 - ground), largest over particles.
 
     Gravity is the only energy source (boundaries and plasticity only dissipate).
@@ -157,12 +157,12 @@ def scene_speed_bound(scene: Scene) -> float:
     v0 = np.asarray(scene.velocity, dtype=np.float64).reshape(-1, 3)
     z0 = np.asarray(scene.positions, dtype=np.float64)[:, 2]
     drop = max(float(z0.max()) - GROUND_Z, 0.0)
-    return math.sqrt(float((v0**2).sum(1).max()) + 2.0 * GRAVITY * drop)
+    return math.sqrt(float((v0**2).sum(1).max()) + 2.0 * gravity * drop)
 
 
-def scene_substeps(scene: Scene, frame_interval: float = FRAME_INTERVAL) -> int:
+def scene_substeps(scene: Scene, frame_interval: float = FRAME_INTERVAL, gravity: float = GRAVITY) -> int:
     """substeps_for() of a scene with its own speed bound."""
-    return substeps_for(scene.family, scene.parameters, scene.density, scene_speed_bound(scene), frame_interval)
+    return substeps_for(scene.family, scene.parameters, scene.density, scene_speed_bound(scene, gravity), frame_interval)
 
 
 @wp.func
@@ -494,7 +494,8 @@ def simulate(
     `cancelled`, asked before each frame, ends the simulation early by raising Cancelled (a stopping
     node's worker must not be inside Warp when the interpreter exits).
 
-    gravity (m/s^2 along -z) and boundaries (walls + ground) can be switched off for physics tests.
+    gravity (m/s^2 along -z, >= 0; the substep count allows for it) and boundaries (walls + ground) can
+    be switched off for physics tests.
     shared_p2g selects the shared-memory P2G kernel (default: on CUDA devices only; on CPU it
     needs warp.config.enable_cpu_blocks and is slower, but it is how the CUDA path is tested).
     """
@@ -503,6 +504,8 @@ def simulate(
     if frame_count < 1:
         raise ValueError("frame_count must be >= 1")
     _check_frame_interval(frame_interval)
+    if not (math.isfinite(gravity) and gravity >= 0):  # the substep rule's speed bound assumes a fall to the ground
+        raise ValueError(f"gravity must be >= 0 (m/s^2 along -z), got {gravity!r}")
     positions = [_validate(s, i) for i, s in enumerate(scenes)]
     counts = np.array([len(p) for p in positions], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)])
@@ -521,7 +524,7 @@ def simulate(
 
     velocities = np.concatenate([_initial_velocity(s, n, i) for i, (s, n) in enumerate(zip(scenes, counts))])
     params = [full_parameters(s.family, s.parameters) for s in scenes]
-    substeps = np.array([scene_substeps(s, frame_interval) for s in scenes], dtype=np.int32)
+    substeps = np.array([scene_substeps(s, frame_interval, gravity) for s in scenes], dtype=np.int32)
     lame_pairs = [lame(p["youngs_modulus"], p["poissons_ratio"]) for p in params]
     num_scenes, total = len(scenes), int(offsets[-1])
     scene_ids = np.repeat(np.arange(num_scenes), counts)
