@@ -114,6 +114,10 @@ def test_lame_and_full_parameters():
         M.full_parameters("jelly", {"youngs_modulus": 1e5, "poissons_ratio": 0.5})
     with pytest.raises(ValueError, match="unphysical"):
         M.full_parameters("sand", {"friction_angle": 30.0})  # degrees by mistake
+    # Sand's E and nu are fixed: given again they must be the same (they simulated sand at E = 1e6 before).
+    assert M.full_parameters("sand", {"youngs_modulus": 1e5, "poissons_ratio": 0.3, "friction_angle": 0.5})["youngs_modulus"] == 1e5
+    with pytest.raises(ValueError, match=r"sand fixes \['youngs_modulus'\] at \[100000.0\]"):
+        M.full_parameters("sand", {"youngs_modulus": 1e6, "friction_angle": 0.5})
 
 
 def test_elastic_laws_match_numpy():

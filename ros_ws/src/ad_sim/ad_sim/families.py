@@ -112,13 +112,18 @@ def denormalise(name: str, value):
 
 
 def full_parameters(family: str, parameters: dict[str, float]) -> dict[str, float]:
-    """The family's parameters with fixed values filled in; raises on missing or foreign names."""
+    """The family's parameters with fixed values filled in; raises on missing or foreign names, or a fixed
+    parameter given another value."""
     _check_family(family)
     unknown = set(parameters) - set(PARAMETER_NAMES)
     if unknown:
         raise ValueError(f"unknown parameter(s) {sorted(unknown)}; expected names from {PARAMETER_NAMES}")
-    out = dict(FIXED_PARAMETERS[family])
-    out.update({k: float(v) for k, v in parameters.items() if k in FAMILY_PARAMETERS[family]})
+    fixed = FIXED_PARAMETERS[family]
+    changed = {k: v for k, v in parameters.items() if k in fixed and not math.isclose(v, fixed[k], rel_tol=1e-6)}
+    if changed:  # the family's law is defined with them (and the substep rule validated for them)
+        raise ValueError(f"{family} fixes {sorted(changed)} at {[fixed[k] for k in sorted(changed)]}, got {changed}")
+    out = dict(fixed)
+    out.update({k: float(v) for k, v in parameters.items() if k in FAMILY_PARAMETERS[family] and k not in fixed})
     missing = [n for n in FAMILY_PARAMETERS[family] if n not in out]
     if missing:
         raise ValueError(f"{family} needs parameter(s) {missing} (SI units, radians for friction_angle)")
