@@ -1,9 +1,13 @@
 """ad_estimator.window: stamp-based slots, episode restarts, output policies (pure logic)."""
+import math
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from ad_estimator.parameters import PARAMETERS, model_window
 from ad_estimator.window import LATE_FRAMES, FrameWindow, clip_output, clip_stamps
 
 DT = 25_000_000  # ns
@@ -407,3 +411,274 @@ def test_episodes_without_estimate_under_the_anytime_policy_and_their_slots():
     feed(window, [k * DT for k in range(10)])
     feed(window, [10**9])
     assert window.stats.without_estimate == 1 and window.stats.last_without_estimate_slots == 10
+
+
+# --- An independent model of the documented rules (README "Episodes"/"Output", docs/estimator.md "Frames,
+# slots and episodes"), compared with FrameWindow on random streams.
+
+SETTLE_EPS = 1_000  # ns: a stamp this close before a slot time counts as at it (float stamps)
+
+
+class DocumentedWindow:
+    """Outputs are (slot stamps or None, complete, episode, episode start)."""
+
+    def __init__(self, dt, count, gap, tolerance, policy, min_frames, every_n):
+        self.dt, self.count, self.gap, self.tol = dt, count, gap, tolerance
+        self.reach = min(gap, LATE_FRAMES * dt)  # "4 frame intervals (0.1 s, or gap_threshold if shorter)"
+        self.policy, self.every_n = policy, every_n
+        self.min_frames = min_frames if policy == "anytime" else count
+        self.late = self.duplicates = self.without_estimate = 0
+        self.restarts = {}
+        self.ep = None  # the current episode
+        self.previous_last = None  # the last stamp of the episode before (None after a reset)
+
+    def _start(self, stamp, size, reason, frames=()):
+        if reason:
+            self.restarts[reason] = self.restarts.get(reason, 0) + 1
+        self.ep = dict(t0=stamp, size=size, last=stamp, frames=[], slots=[], emitted=0, done=False)
+        return [out for s in (stamp, *frames) for out in self._accept(s)]
+
+    def _settle(self, upto):  # slots settle in order; each takes the nearest frame received so far
+        ep = self.ep
+        for k in range(len(ep["slots"]), min(upto, self.count)):
+            t = ep["t0"] + k * self.dt
+            near = [s for s in ep["frames"] if abs(s - t) <= self.tol]
+            ep["slots"].append(min(near, key=lambda s: (abs(s - t), s)) if near else None)  # ties: earlier
+
+    def _accept(self, stamp):
+        ep = self.ep
+        ep["last"] = stamp
+        if ep["done"]:  # after its last slot the episode ignores frames
+            return []
+        ep["frames"].append(stamp)
+        self._settle((stamp - ep["t0"] + SETTLE_EPS) // self.dt + 1)  # slot k: once a frame at t0 + k dt came
+        return self._due(final=False)
+
+    def _due(self, final):
+        ep, n = self.ep, len(self.ep["slots"])
+        if n < self.min_frames or n <= ep["emitted"]:
+            return []
+        if n < self.count and (self.policy == "episode" or not (
+                final or ep["emitted"] == 0 or n - ep["emitted"] >= self.every_n)):
+            return []
+        ep["emitted"], ep["done"] = n, n == self.count
+        return [(tuple(ep["slots"]), n == self.count, sum(self.restarts.values()), ep["t0"])]
+
+    def flush(self):  # the slots up to the one nearest to the last frame (a half: the later) settle
+        if self.ep is None or self.ep["done"]:
+            return []
+        self._settle(math.floor((self.ep["last"] - self.ep["t0"]) / self.dt + 0.5) + 1)
+        return self._due(final=True)
+
+    def reset(self):
+        self.ep = self.previous_last = None
+
+    def add(self, stamp, size):
+        ep = self.ep
+        if ep is None:
+            return self._start(stamp, size, "first")
+        back = ep["last"] - stamp
+        reason = ("size" if size != ep["size"] else "backwards" if back > self.reach
+                  else "gap" if -back > self.gap else None)
+        if reason == "backwards" and self.previous_last is not None and 0 <= self.previous_last - stamp <= self.reach:
+            self.late += 1  # a straggler of the episode before
+            return []
+        if reason:
+            outputs = self.flush()  # the episode before ends: what is due goes out
+            self.without_estimate += not ep["emitted"]
+            self.previous_last = ep["last"]
+            return outputs + self._start(stamp, size, reason)
+        if back == 0:
+            self.duplicates += 1
+        elif stamp < ep["t0"] and not ep["done"]:  # its true first frame, overtaken: again from it
+            return self._start(stamp, size, None, ep["frames"])
+        elif back > 0:  # reordered; after its estimate, a frame before the episode's first is late too
+            self.late += 1
+        else:
+            return self._accept(stamp)
+        return []
+
+
+def random_events(rng, dt, n):
+    """("frame", stamp, size), ("reset",), ("flush",): jitter, drops, duplicates, reordering, stamps going
+    back by less and more than LATE_FRAMES intervals, gaps around 0.3 s, size changes, huge stamps."""
+    base = int(rng.choice([0, 10**9 - 3 * dt, 17 * 10**9 - 1, (2**31 - 1) * 10**9,
+                           int(rng.integers(1, 2**31)) * 10**9 + int(rng.integers(0, 10**9))]))
+    stamp, size, events = base, (8, 8), []
+    for _ in range(n):
+        r = rng.random()
+        if r < 0.55:  # on time, or jittered by up to a third of the interval
+            step = dt + int(rng.integers(-dt // 3, dt // 3 + 1)) * int(rng.random() < 0.4)
+        elif r < 0.62:  # between slots, frames lost, sub-microsecond steps
+            step = int(rng.choice([dt // 2, dt * 4 // 3, 2 * dt, 2 * dt + dt // 2, 1, 999, 1000, 1001]))
+        elif r < 0.67:
+            step = 0
+        elif r < 0.77:  # reordered: 1..4 intervals back, and just past LATE_FRAMES
+            step = -int(rng.integers(1, 5)) * dt + int(rng.choice([0, 0, -1, 1, -dt // 2]))
+        elif r < 0.82:  # a stream or bag starting over
+            step = -int(rng.choice([5 * dt, 10 * dt, 10**9, stamp - base]))
+        elif r < 0.9:  # gaps around the threshold, and long pauses
+            step = int(rng.choice([100_000_000, 110_000_000, 290_000_000, 300_000_000, 300_000_001, 310_000_000,
+                                   5 * 10**9]))
+        elif r < 0.93:
+            events.append(("reset",))
+            continue
+        elif r < 0.96:
+            events.append(("flush",))
+            continue
+        else:
+            size, step = ((4, 8) if size == (8, 8) else (8, 8)), dt
+        stamp += step
+        events.append(("frame", stamp, size))
+    return events
+
+
+def compare_with_documented_rules(seed):
+    """None, or the first event at which FrameWindow and DocumentedWindow disagree."""
+    rng = np.random.default_rng(seed)
+    dt = int(rng.choice([25_000_000, 33_333_333]))
+    count = int(rng.choice([25, 25, 25, 6, 3]))
+    gap = float(rng.choice([0.3, 0.3, 0.11, 0.06]))
+    tolerance = float(rng.choice([1.0, 1.0, 0.5, 0.4, 2.0]))
+    if gap * 1e9 <= tolerance * dt:
+        tolerance = 1.0
+    policy = str(rng.choice(["episode", "anytime"]))
+    min_frames, every_n = int(rng.integers(1, count + 1)), int(rng.integers(1, 7))
+    window = FrameWindow(dt / 1e9, count, gap_threshold=gap, slot_tolerance=tolerance, policy=policy,
+                         every_n=every_n, min_frames=min_frames, history=1)
+    documented = DocumentedWindow(window.interval_ns, count, window.gap_ns, window.tolerance_ns, policy, min_frames,
+                                  every_n)
+    events = random_events(rng, dt, int(rng.integers(1, 120)))
+    stamps = [e[1] if e[0] == "frame" else None for e in events]
+
+    def slots(outputs):  # features carry the event index: float stamps would lose nanoseconds
+        return [(tuple(stamps[int(f[0])] if v else None for f, v in zip(o.features, o.valid)), o.complete,
+                 o.episode, o.episode_start_ns) for o in outputs]
+
+    for i, event in enumerate(events):
+        if event[0] == "reset":
+            window.reset(), documented.reset()
+            got = want = []
+        elif event[0] == "flush":
+            got, want = slots(window.flush()), documented.flush()
+        else:
+            got = slots(window.add(event[1], np.zeros(event[2]), lambda _f, _e, i=i: np.array([float(i)])))
+            want = documented.add(event[1], event[2])
+        stats = (window.stats.late, window.stats.duplicates, window.stats.without_estimate,
+                 dict(window.stats.restarts))
+        expected = (documented.late, documented.duplicates, documented.without_estimate, documented.restarts)
+        if got != want or stats != expected:
+            return {"seed": seed, "events": events[:i + 1], "outputs": (got, want), "stats": (stats, expected)}
+    return None
+
+
+def test_the_window_follows_the_documented_rules_on_random_streams():
+    failures = [f for f in map(compare_with_documented_rules, range(1000)) if f]
+    assert not failures, min(failures, key=lambda f: len(f["events"]))
+
+
+def test_a_frame_before_a_complete_episode_is_late_not_a_second_estimate():
+    """A model of 3 slots completes within LATE_FRAMES intervals: a frame stamped before the episode's
+    first one then came after its estimate. It once restarted the episode and sent a second complete
+    estimate for it (the episode policy's one estimate per episode)."""
+    window = FrameWindow(0.025, 3, history=1)
+    (out,) = feed(window, [DT, 2 * DT, 3 * DT])
+    assert out.complete and out.episode_start_ns == DT
+    assert feed(window, [0]) == [] and window.stats.late == 1 and window.episodes == 1
+    assert feed(window, [3 * DT + 10**9 + k * DT for k in range(3)])[0].episode == 2
+
+
+def test_epoch_float_stamps_fill_every_slot():
+    """Stamps from float seconds near 1.7e9 or 2**31 s are off by a few hundred ns either way."""
+    for base in (1.7e9, 1.7e9 + 0.9875, 2**31 - 1.3):
+        for convert in (int, round):
+            for fps, last in ((40, 24), (30, 18)):
+                window = FrameWindow(0.025, 25, history=1)
+                outs = [(k, o) for k in range(40) for o in feed(window, [convert((base + k / fps) * 1e9)])]
+                assert [(k, o.frames_used, o.complete) for k, o in outs] == [(last, 25, True)]
+
+
+class RecordingModel:
+    """What estimate and evaluate need of a model: features are the frame's index, predict records."""
+
+    def __init__(self, frame_count=25):
+        self.info = SimpleNamespace(frame_interval=0.025, frame_count=frame_count, previous_frames=1,
+                                    input_threshold=lambda threshold=127: threshold)
+        self.calls = []
+
+    def encode(self, mask, earlier):
+        return np.array([float(mask.flat[0])])
+
+    def predict(self, features, valid):
+        self.calls.append(tuple(int(f[0]) if v else None for f, v in zip(features, valid)))
+        return SimpleNamespace(material="jelly", probabilities=np.ones(4) / 4, parameters=np.zeros(2),
+                               raw_parameters=np.zeros(2), raw_uncertainties=np.zeros(2), uncertainties=np.zeros(2))
+
+
+def node_window_outputs(model, values, frames):
+    """The node's worker: model_window, window.add per frame, the idle flush when the input pauses."""
+    window = model_window(values, model.info)
+    outputs, previous_log = [], None
+    for log_time, stamp, mask in frames:
+        if values["idle_flush"] > 0 and previous_log is not None and log_time - previous_log > values["idle_flush"] * 1e9:
+            outputs += window.flush()
+        previous_log = log_time
+        outputs += window.add(stamp, mask, model.encode)
+    return outputs + window.flush()
+
+
+@pytest.mark.filterwarnings("ignore")  # estimate warns about the late and repeated stamps, as it should
+def test_estimate_makes_the_node_windows_decisions(monkeypatch):
+    """estimate.estimate_bag on random streams (log pauses included) gives the node's window outputs."""
+    from ad_estimator import estimate
+
+    rng = np.random.default_rng(7)
+    for policy in ("episode", "anytime"):
+        values = {name: default for name, (default, _) in PARAMETERS.items()} | {"output_policy": policy}
+        for _ in range(40):
+            events = [e for e in random_events(rng, DT, 150) if e[0] == "frame"]
+            frames, log_time = [], 0
+            for i, (_, stamp, size) in enumerate(events):
+                log_time += int(rng.choice([DT, DT, 0, 10**9]))
+                frames.append((log_time, stamp, np.full(size, i)))
+            images = [(log, SimpleNamespace(header=SimpleNamespace(stamp=SimpleNamespace(
+                sec=stamp // 10**9, nanosec=stamp % 10**9)), mask=mask)) for log, stamp, mask in frames]
+            monkeypatch.setattr(estimate, "mask_frames", lambda *_: iter(images))
+            monkeypatch.setattr(estimate, "image_to_mask", lambda image, *_: image.mask)
+            model = RecordingModel()
+            rows = estimate.estimate_bag(model, "bag", "/mask", values)
+            expected = node_window_outputs(RecordingModel(), values, frames)
+            assert [(r.output.episode, r.output.episode_start_ns, r.output.complete) for r in rows] == \
+                   [(o.episode, o.episode_start_ns, o.complete) for o in expected]
+            assert model.calls == [tuple(int(f[0]) if v else None for f, v in zip(o.features, o.valid))
+                                   for o in expected]
+
+
+def test_evaluate_makes_the_node_windows_decisions_for_an_episode_in_stamp_order():
+    """evaluate.predict_episode (clip_output) on an episode's frames, jittered, some lost, in stamp order and
+    without a gap over gap_threshold: the node's complete estimate (episode policy), or, for the first K
+    frames, its anytime window flushed after them. With a gap over gap_threshold inside an episode the node
+    restarts its window and evaluate does not (docs/estimator.md, "Replay and evaluate")."""
+    from ad_estimator import evaluate
+
+    rng = np.random.default_rng(11)
+    instance = SimpleNamespace(episode_id=1, material="jelly", parameter_names=("a", "b"), parameters=[0.0, 0.0])
+    for _ in range(100):
+        stamps, stamp = [], int(rng.integers(0, 2**31)) * 10**9
+        while stamp - (stamps or [stamp])[0] < 0.7e9:
+            stamps.append(stamp)
+            stamp += int(rng.choice([DT, DT, DT, 2 * DT, 3 * DT])) + int(rng.integers(-DT // 3, DT // 3))
+        masks = [np.full(SIZE, i) for i in range(len(stamps))]
+        frames = [(s, None) for s in stamps]
+        for k, policy in ((len(stamps), "episode"), (int(rng.integers(1, 25)), "anytime")):
+            model = RecordingModel()
+            evaluate.predict_episode(model, "bag", instance, frames, k, masks=masks)
+            values = {name: default for name, (default, _) in PARAMETERS.items()} | {
+                "output_policy": policy, "min_frames": 1, "every_n": 25}
+            (*_, last) = node_window_outputs(RecordingModel(), values, [(0, s, m) for s, m in zip(stamps[:k], masks)])
+            assert model.calls == [tuple(int(f[0]) if v else None for f, v in zip(last.features, last.valid))]
+    gap = [k * DT + (400_000_000 if k >= 10 else 0) for k in range(30)]
+    model = RecordingModel()
+    evaluate.predict_episode(model, "bag", instance, [(s, None) for s in gap], 30,
+                             masks=[np.full(SIZE, i) for i in range(30)])
+    assert model.calls[0][:10] == tuple(range(10))  # the node's window would have restarted at frame 10

@@ -31,14 +31,18 @@ Episodes. The window restarts (its next frame becomes frame 0) on a stamp more t
 image size and on ``reset()``. A frame less far back arrived out of order (reordered upstream):
 every slot it could fill is settled already or nearer to the later frame, so it is dropped and
 counted as late, and the episode goes on; so is a frame that far behind the last one of the episode
-before (a straggler across a restart). A frame stamped before the episode's first one, within that
-reach, is the episode's true first frame overtaken at the release: the episode starts again from
-it, with the frames it has (all kept until then). A stream that starts over after at most
-LATE_FRAMES frames cannot be told from reordering by stamps; its first frames are then taken as
-late. A frame with the same stamp as the previous one is a duplicate and ignored (a camera that
-does not stamp its images gives nothing but duplicates). The model expects frame 0 at the release
-of the object, so the window is anchored at the episode start; once the episode's last slot is
-settled, further frames are ignored until a restart.
+before (a straggler across a restart) when it is further back than that from the last frame too,
+as after a gap restart (after a size change it restarts the window again; after a stream starting
+over it is a frame of the new episode, or a gap). A frame stamped before the episode's first one,
+within that reach, is the episode's true first frame overtaken at the release: the episode starts
+again from it, with the frames it has (all kept until then), unless its last slot is settled
+already (possible for models of at most LATE_FRAMES + 1 slots): its estimate is out, so the frame
+is late. A stream that starts over after at most LATE_FRAMES frames cannot be told from reordering
+by stamps; its first frames are then taken as late. A frame with the same stamp as the previous
+one is a duplicate and ignored (a camera that does not stamp its images gives nothing but
+duplicates). The model expects frame 0 at the release of the object, so the window is anchored
+at the episode start; once the episode's last slot is settled, further frames are ignored until a
+restart.
 
 Output policy. ``episode``: one estimate per episode when all frame_count slots are settled.
 ``anytime``: an estimate when min_frames slots are settled, then each time ``every_n`` more are,
@@ -211,7 +215,7 @@ class FrameWindow:
                 self.stats.late += 1  # a straggler of the episode before
                 return outputs
             outputs = self._restart(RESTART_BACKWARDS)
-        elif stamp_ns < self._start_ns:
+        elif stamp_ns < self._start_ns and not self._done:  # once complete, the episode's estimate is out
             return self._restart_from(stamp_ns, frame, encode)
         elif stamp_ns < self._last_ns:
             self.stats.late += 1
