@@ -126,6 +126,11 @@ def interruptible(prog: str):
             try:
                 return main(argv)
             except KeyboardInterrupt:
+                from tqdm import tqdm
+
+                # A bar the Ctrl-C left open (one made but not yet entered as a context manager) ends its line first.
+                for bar in list(tqdm._instances):
+                    bar.close()
                 print(f"{prog}: interrupted; nothing was written", file=sys.stderr)
                 return 130
         return run
