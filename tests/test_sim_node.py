@@ -246,6 +246,15 @@ def test_a_dead_subscriber_stalls_playback_for_ack_timeout_not_for_its_lease(ros
     assert stop(node, signal.SIGINT) == 0
 
 
+def test_a_mistyped_parameter_is_warned_about_not_silently_ignored(ros_domain_id, tmp_path):
+    """rclpy drops values for undeclared parameters: `flush_perod:=0.2` left the default without a word."""
+    recorder = start("record", ros_domain_id, tmp_path / "record.log", output=str(tmp_path / "bag"), flush_perod=0.2)
+    wait_for_log(tmp_path / "record.log", r"ignoring parameter 'flush_perod': this node has none of that name "
+                                          r"\(did you mean flush_period\? --help lists them\)", recorder)
+    assert stop(recorder, signal.SIGINT) == 0
+    assert "use_sim_time" not in (tmp_path / "record.log").read_text()  # rclpy's own parameters are known
+
+
 def test_help_lists_the_parameters():
     for executable, parameters in (("node", ("instances", "real_time_factor", "views", "wait_for_subscribers", "ack_timeout")), ("record", ("output", "topics", "max_bag_size"))):
         result = subprocess.run([str(ADRUN), "ad_sim", executable, "--help"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)

@@ -10,6 +10,7 @@ one lost packet, so these nodes load a default writer profile with 20 ms heartbe
 """
 from __future__ import annotations
 
+import difflib
 import importlib
 import os
 import sys
@@ -81,6 +82,13 @@ def declare_parameters(node, parameters) -> None:
     for name, default, meaning in parameters:
         node.declare_parameter(name, default, ParameterDescriptor(
             description=meaning, read_only=True, dynamic_typing=isinstance(default, float)))
+    # rclpy ignores values given for parameters a node does not declare: a typo (`min_frame:=10`) would
+    # silently leave the default. A warning, not an error: one params file may serve several nodes (`/**`).
+    unknown = sorted(set(getattr(node, "_parameter_overrides", {})) - set(node._parameters))
+    for name in unknown:
+        close = difflib.get_close_matches(name, [p[0] for p in parameters], n=1)
+        hint = f"did you mean {close[0]}? " if close else ""
+        node.get_logger().warning(f"ignoring parameter {name!r}: this node has none of that name ({hint}--help lists them)")
 
 
 def number(node, name: str) -> float:
