@@ -68,3 +68,10 @@ def test_a_ctrl_c_line_never_lands_on_an_open_progress_bar(capsys):
     assert main([]) == 130
     lines = capsys.readouterr().err.replace("\r", "\n").strip().splitlines()
     assert lines[-1] == "tool: interrupted; nothing was written" and lines[-2].startswith("bags:"), lines
+
+
+def test_a_relative_topic_is_taken_from_the_root_namespace():
+    assert cli.topic("ad_sim/view_0/mask") == cli.topic("/ad_sim/view_0/mask") == "/ad_sim/view_0/mask"
+    for bad in ("", "/", "//"):
+        with pytest.raises(argparse.ArgumentTypeError, match="expected a topic name"):
+            cli.topic(bad)

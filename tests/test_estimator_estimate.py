@@ -96,6 +96,10 @@ def test_a_robot_bag_without_ground_truth_gets_estimates_on_its_own_topic(setup,
     assert estimate.main(["--model", str(model), str(bag), "--topic", CAMERA, "--out", str(tmp_path / "r.csv"),
                           "--quiet"]) == 0
     assert capsys.readouterr().out.rstrip().endswith("r.csv (it replaced the file of an earlier run)")
+    # A topic named as a node in the root namespace would name it (relative) is found too.
+    assert estimate.main(["--model", str(model), str(bag), "--topic", CAMERA.lstrip("/"), "--out", str(tmp_path / "r.csv"),
+                          "--quiet"]) == 0
+    assert len(read_csv(tmp_path / "r.csv")) == 2
 
 
 def test_episodes_are_counted_by_the_window_so_a_looped_recording_keeps_them_apart(setup, tmp_path):

@@ -34,6 +34,14 @@ def seed(text: str) -> int:
     return int(text)
 
 
+def topic(text: str) -> str:
+    """argparse type of a topic name in a bag: a relative name is taken from the root namespace, as a node
+    there resolves it (bags hold fully qualified names)."""
+    if not text.strip("/"):
+        raise argparse.ArgumentTypeError(f"expected a topic name, got {text!r}")
+    return text if text.startswith("/") else "/" + text
+
+
 def _finite(text: str) -> float:
     try:
         return float(text) if math.isfinite(float(text)) else math.nan

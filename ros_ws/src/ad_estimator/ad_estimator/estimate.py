@@ -23,7 +23,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ad_estimator.cli import HelpFormatter, interruptible, staged
+from ad_estimator.cli import HelpFormatter, interruptible, staged, topic
 from ad_estimator.evaluate import check_image_topic, check_out, find_bags, image_topics
 from ad_estimator.images import ImageRejected, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, Estimate, EstimatorModel, ModelError
@@ -162,7 +162,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     "if there is no estimate or a bag could not be read (the CSV still holds the others').")
     parser.add_argument("bags", type=Path, nargs="+",
                         help="bag folders, .mcap files, or folders holding bags (searched recursively)")
-    parser.add_argument("--topic", default=DEFAULT_INPUT_TOPIC,
+    parser.add_argument("--topic", type=topic, default=DEFAULT_INPUT_TOPIC,
                         help="mask topic (sensor_msgs/Image: mono8, mono16, or colour, as the node takes them)")
     parser.add_argument("--model", type=Path, default=BUNDLED_MODEL, help="ONNX model (default: the bundled one)")
     parser.add_argument("--out", type=Path, default=None,

@@ -22,7 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ad_estimator import metrics
-from ad_estimator.cli import HelpFormatter, interruptible, positive, staged
+from ad_estimator.cli import HelpFormatter, interruptible, positive, staged, topic
 from ad_estimator.images import MAX_IMAGE_PIXELS, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC
@@ -298,7 +298,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help=f"also evaluate with only the first K frames observed (temporal OOD), e.g. "
                              f"--frames 24 18 or --frames 24,18; with no value: "
                              f"{' '.join(map(str, metrics.TEMPORAL_OOD_FRAMES))}")
-    parser.add_argument("--topic", default=MASK_TOPIC, help="mask topic to evaluate (one camera; sensor_msgs/Image)")
+    parser.add_argument("--topic", type=topic, default=MASK_TOPIC, help="mask topic to evaluate (one camera; sensor_msgs/Image)")
     parser.add_argument("--out", type=Path, default=None,
                         help="report folder (default reports/evaluate/<model id>)")
     parser.add_argument("--title", default=None, help="report title")

@@ -26,7 +26,7 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tqdm import tqdm
 
-from ad_estimator.cli import HelpFormatter
+from ad_estimator.cli import HelpFormatter, topic
 from ad_estimator.window import ns_to_stamp
 from ad_sim import messages
 from ad_sim.dds import message_class, non_ros_args, qos_from_profile, use_fast_heartbeat
@@ -149,8 +149,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                     "(for machines without rosbag2). ROS arguments (remapping) go after --ros-args.")
     parser.add_argument("bag", type=Path, help="bag folder (metadata.yaml + .mcap files) or a single .mcap")
     parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor (2 = twice as fast)")
-    parser.add_argument("--topics", nargs="+", help="replay only these topics (default: all)")
-    parser.add_argument("--wait-for", nargs="+", default=[], metavar="TOPIC",
+    parser.add_argument("--topics", nargs="+", type=topic, help="replay only these topics (default: all)")
+    parser.add_argument("--wait-for", nargs="+", type=topic, default=[], metavar="TOPIC",
                         help="before starting, wait until each of these topics has a subscriber (the bag's topic "
                              "names, as --topics takes them, even when remapped with --ros-args -r)")
     parser.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for --wait-for")
