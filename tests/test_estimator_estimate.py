@@ -324,14 +324,15 @@ def test_clear_errors_before_any_work(setup, tmp_path, capsys):
     model, bag = setup
     (tmp_path / "file").write_text("keep")
     cases = [
-        (["--output-policy", "anytime", "--min-frames", "0"], "min_frames must be positive"),
-        (["--threads", "0"], "threads must be positive"),
-        (["--mask-threshold", "300"], "mask_threshold is a pixel value in 0..254"),
-        (["--idle-flush", "-1"], "idle_flush is seconds in 0..1e+06 (0: never), got -1.0"),
-        (["--idle-flush", "inf"], "idle_flush is seconds in 0..1e+06 (0: never), got inf"),  # was an OverflowError
-        (["--gap-threshold", "inf"], "gap_threshold must be a number of seconds up to 1e+06, got inf"),
-        (["--gap-threshold", "1e300"], "gap_threshold must be a number of seconds up to 1e+06, got 1e+300"),
-        (["--slot-tolerance", "3"], "slot_tolerance"),
+        # named as the options given (the node's messages name its parameters)
+        (["--output-policy", "anytime", "--min-frames", "0"], "--min-frames must be positive"),
+        (["--threads", "0"], "--threads must be positive"),
+        (["--mask-threshold", "300"], "--mask-threshold is a pixel value in 0..254"),
+        (["--idle-flush", "-1"], "--idle-flush is seconds in 0..1e+06 (0: never), got -1.0"),
+        (["--idle-flush", "inf"], "--idle-flush is seconds in 0..1e+06 (0: never), got inf"),  # was an OverflowError
+        (["--gap-threshold", "inf"], "--gap-threshold must be a number of seconds up to 1e+06, got inf"),
+        (["--gap-threshold", "1e300"], "--gap-threshold must be a number of seconds up to 1e+06, got 1e+300"),
+        (["--slot-tolerance", "3"], "--slot-tolerance"),
         (["--out", tmp_path], "is a folder; pass a .csv file name"),
         # --out is a CSV file: the messages ask for one, not for a folder
         (["--out", tmp_path / "file" / "e.csv"], f"--out {tmp_path / 'file' / 'e.csv'}: {tmp_path / 'file'} is not a "

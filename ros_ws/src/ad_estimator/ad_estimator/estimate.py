@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import re
 import sys
 import warnings
 from collections import Counter
@@ -34,6 +35,11 @@ from ad_sim.rosbag import BagDamaged, BagError, BagReader, one_line_warnings
 # The node's parameters that apply offline, offered as options of the same names (--gap-threshold ...).
 OPTIONS = ("output_policy", "min_frames", "every_n", "gap_threshold", "slot_tolerance", "idle_flush",
            "mask_threshold", "max_image_pixels", "threads")
+
+
+def as_options(message: str) -> str:
+    """A parameter check's message with each of OPTIONS named as the option given here (min_frames -> --min-frames)."""
+    return re.sub(rf"\b({'|'.join(OPTIONS)})\b", lambda m: "--" + m.group(1).replace("_", "-"), message)
 
 
 FIRST_COLUMNS = ("bag", "episode", "episode_start_s")  # of every CSV estimate writes, whatever the model
@@ -185,9 +191,12 @@ def main(argv: list[str] | None = None) -> int:
     values = {name: getattr(args, name) for name in OPTIONS}
     tally: Counter = Counter()
     try:
-        check_parameters(values)
-        model = EstimatorModel.load(args.model, threads=args.threads)
-        model_window(values, model.info)  # bad window settings fail before any work
+        try:
+            check_parameters(values)
+            model = EstimatorModel.load(args.model, threads=args.threads)
+            model_window(values, model.info)  # bad window settings fail before any work
+        except ValueError as exc:
+            raise ValueError(as_options(str(exc))) from None
         out = args.out or Path("reports") / "estimate" / f"{model.model_id}.csv"
         if out.is_dir():
             raise ValueError(f"--out {out} is a folder; pass a .csv file name")
