@@ -73,11 +73,12 @@ def test_bags_are_generated_on_the_device_asked_for(tmp_path, monkeypatch, devic
     import torch
 
     asked = []
-    monkeypatch.setattr(ad_sim.generate, "main", lambda argv: asked.append(argv[argv.index("--device") + 1]) or 130)
+    monkeypatch.setattr(ad_sim.generate, "main", lambda argv: asked.append(argv) or 130)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # as on a GPU machine: auto means cuda
     assert main(["pipeline", "--size", "tiny", "--data", str(tmp_path / "bags"), "--out", str(tmp_path / "run"),
                  "--device", device, "--no-progress"]) == 130
-    assert asked == [generated_on]
+    assert [argv[argv.index("--device") + 1] for argv in asked] == [generated_on]
+    assert "--quiet" in asked[0]  # --no-progress reaches generate's bars too
 
 
 def _pipeline_bags(tmp_path) -> Path:

@@ -27,7 +27,7 @@ LR = {"tiny": 1e-3, "small": 5e-4, "paper": 1e-4}
 SPLITS = ("train", "seen", "unseen")
 
 
-def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str) -> Path:
+def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str, progress: bool = True) -> Path:
     """data_dir/<size>/<split>, generated (resumably) if it holds no finished bag."""
     from ad_sim.generate import main as generate
 
@@ -35,7 +35,7 @@ def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str) -
     if not list(folder.rglob("*.mcap")) or not list(folder.rglob("DONE")):
         print(f"generating {size}/{split} bags into {folder} (ad_sim.generate, resumable)")
         code = generate(["--size", size, "--split", split, "--seed", str(seed), "--out", str(folder),
-                         "--device", resolve_device(device)])  # cuda:<index> too, and auto
+                         "--device", resolve_device(device), *([] if progress else ["--quiet"])])  # cuda:<index> too
         if code == 130:  # Ctrl-C: generate has said what is unfinished; stop as the pipeline's own Ctrl-C does
             raise KeyboardInterrupt
         if code:
@@ -85,7 +85,8 @@ def run(args) -> dict:
     teacher_epochs = args.teacher_epochs or EPOCHS[args.size][0]
     student_epochs = args.student_epochs or EPOCHS[args.size][1]
     teacher_batch, student_batch = BATCH[args.size]
-    bags = {s: ensure_bags(Path(args.data), args.size, s, args.seed, args.device) for s in SPLITS}
+    bags = {s: ensure_bags(Path(args.data), args.size, s, args.seed, args.device, not args.no_progress)
+            for s in SPLITS}
     timings = {"generate_s": time.time() - started}
 
     t = time.time()
