@@ -51,6 +51,17 @@ def test_family_parameters_nan_and_fixed(models):
     assert plasticine[:3].tolist() == [2e5, 0.3, 1000.0] and np.isnan(plasticine[3])
 
 
+def test_a_log_line_gives_each_parameter_its_unit():
+    """Friction angle went out in radians with no unit, while the demo prints degrees."""
+    from ad_estimator.model import Estimate
+
+    names = ("youngs_modulus", "poissons_ratio", "yield_stress", "friction_angle")
+    nan = np.full(4, np.nan)
+    sand = Estimate(("jelly", "plasticine", "sand"), np.array([0.1, 0.1, 0.8]), "sand", names,
+                    np.array([1e5, 0.3, np.nan, 0.5]), nan, nan, nan, 25, 0.003)
+    assert sand.describe() == "sand p=0.80; youngs_modulus 1e+05 Pa, poissons_ratio 0.3, friction_angle 0.5 rad"
+
+
 def test_uncertainty_is_the_delta_method_in_si(models):
     model = models["clip"]
     rng = model.info.parameter_ranges["youngs_modulus"]

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
-from ad_sim.families import from_unit
+from ad_sim.families import PARAMETER_UNITS, from_unit
 
 from .images import DEFAULT_THRESHOLD
 
@@ -170,9 +170,9 @@ class Estimate:
     inference_time: float  # seconds spent in predict()
 
     def describe(self) -> str:
-        """One line for logs: the family, its probability and its parameters (SI)."""
-        used = ", ".join(f"{name} {value:.4g}" for name, value in zip(self.parameter_names, self.parameters)
-                         if not math.isnan(value))
+        """One line for logs: the family, its probability and its parameters (SI, with their units)."""
+        used = ", ".join(f"{name} {value:.4g} {PARAMETER_UNITS.get(name, '')}".rstrip()
+                         for name, value in zip(self.parameter_names, self.parameters) if not math.isnan(value))
         return f"{self.material} p={self.probabilities.max():.2f}; {used}"
 
 

@@ -10,6 +10,7 @@ import numpy as np
 
 FAMILIES = ("jelly", "plasticine", "sand")
 PARAMETER_NAMES = ("youngs_modulus", "poissons_ratio", "yield_stress", "friction_angle")
+PARAMETER_UNITS = {"youngs_modulus": "Pa", "poissons_ratio": "", "yield_stress": "Pa", "friction_angle": "rad"}  # SI, REP-103
 
 FRAME_INTERVAL = 0.025  # s between recorded frames
 FRAME_COUNT = 25  # frames per episode, frame 0 = initial state
