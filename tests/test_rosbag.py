@@ -487,3 +487,115 @@ def test_killed_writer_leaves_flushed_chunks_readable(tmp_path):
     assert len(recovered) >= flushed
     instances = [m for m in recovered if m.topic == "/ad_sim/instance"]
     assert [m.message.episode_index for m in instances] == list(range(len(instances)))
+
+
+# ------------------------------------------------------------------------------- damage found by fuzzing
+
+
+def _chunk_messages(file: Path) -> list[tuple[int, list[tuple[int, int]]]]:
+    """(chunk_start_offset, [(channel id, log time)] of its messages) of each chunk, from an intact file."""
+    import io
+
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import breakup_chunk
+
+    data = file.read_bytes()
+    with open(file, "rb") as f:
+        indexes = make_reader(f).get_summary().chunk_indexes
+    out = []
+    for index in sorted(indexes, key=lambda c: c.chunk_start_offset):
+        record = data[index.chunk_start_offset + 9 : index.chunk_start_offset + index.chunk_length]
+        chunk = Chunk.read(ReadDataStream(io.BytesIO(record)))
+        out.append((index.chunk_start_offset,
+                    [(r.channel_id, r.log_time) for r in breakup_chunk(chunk) if isinstance(r, Message)]))
+    return out
+
+
+@pytest.mark.parametrize("damage", ["opcode_message_index", "opcode_data_end", "opcode_footer", "length_huge",
+                                    "length_short"])
+def test_a_chunk_whose_record_header_is_damaged_is_named_and_the_chunks_after_it_are_read(tmp_path, damage):
+    """The opcode or length of a chunk record damaged (the summary, intact, lists the chunk there): it was skipped
+    (another opcode), or everything after it was lost without a word (a data-end or footer opcode) or with a
+    warning although the summary says where the next chunks are (a length past the end, or one too short). Now an
+    error naming --recover, and recovering skips just that chunk."""
+    path = tmp_path / "bag"
+    written = write_fabricated_bag(path, episodes=1, chunk_size=50_000)
+    file = path / "bag_0.mcap"
+    chunks = _chunk_messages(file)
+    offset, lost = chunks[len(chunks) // 2]
+    assert lost and len(chunks) > 4
+    data = bytearray(file.read_bytes())
+    if damage.startswith("opcode"):
+        data[offset] = {"opcode_message_index": 0x07, "opcode_data_end": 0x0F, "opcode_footer": 0x02}[damage]
+    else:
+        (length,) = np.frombuffer(bytes(data[offset + 1 : offset + 9]), "<u8")
+        data[offset + 1 : offset + 9] = np.uint64(2**40 if damage == "length_huge" else length - 100).tobytes()
+    file.write_bytes(bytes(data))
+    with pytest.raises(rosbag.BagDamaged, match=rf"bag_0\.mcap.* at byte {offset}.*--recover"):
+        list(BagReader(path))
+    with pytest.warns(UserWarning, match=rf"bag_0\.mcap.* at byte {offset}"):
+        recovered = [(m.topic, m.log_time_ns) for m in BagReader(path, recover=True)]
+    assert len(recovered) == len(written) - len(lost)
+    assert set(recovered) <= {(t, s) for t, s, _ in written}
+    assert {s for _, s in recovered} >= {s for _, s, _ in written if s > max(t for _, t in lost)}  # the chunks after it
+
+
+def test_a_summary_that_fails_its_crc_is_not_trusted(tmp_path):
+    """A byte of the summary section damaged (here a letter of a topic name in a Channel record): the footer's
+    summary CRC says so, but topics() reported the damaged name (and `repair` failed on it, leaving a bag behind).
+    Now an error naming --recover, and recovering reads the topics from the data section."""
+    path = tmp_path / "bag"
+    write_fabricated_bag(path, episodes=1, chunk_size=50_000)
+    file = path / "bag_0.mcap"
+    data = bytearray(file.read_bytes())
+    footer = len(data) - 8 - 29
+    summary_start = int(np.frombuffer(bytes(data[footer + 9 : footer + 17]), "<u8")[0])
+    at = data.index(b"/ad_sim/instance", summary_start)
+    data[at + 1] ^= 0x01  # "/`d_sim/instance"
+    file.write_bytes(bytes(data))
+    for read in (BagReader.topics, list):
+        with pytest.raises(rosbag.BagDamaged, match=rf"bag_0\.mcap: corrupt summary section .*CRC.*--recover"):
+            read(BagReader(path))
+    with pytest.warns(UserWarning, match="corrupt summary section"):
+        topics = BagReader(path, recover=True).topics()
+    assert set(topics) == set(messages.topic_types(1))
+
+
+@pytest.mark.parametrize("listed", ["twice", "dotdot"])
+def test_a_file_that_metadata_yaml_names_twice_is_not_read_twice(bag, tmp_path, listed):
+    """relative_file_paths naming one file twice, or by another path to it ("../copy/copy_0.mcap"): every message
+    was read twice (the second time as a file "not named in metadata.yaml"). Now a file named twice makes
+    metadata.yaml unusable (an error naming --recover; recovering reads each file once), and a file named by
+    another path to it is that file."""
+    source, written = bag
+    path = tmp_path / "copy"
+    path.mkdir()
+    shutil.copy(source / "two_0.mcap", path / "copy_0.mcap")
+    metadata = yaml.safe_load((source / "metadata.yaml").read_text())
+    names = ["copy_0.mcap", "copy_0.mcap"] if listed == "twice" else ["../copy/copy_0.mcap"]
+    metadata["rosbag2_bagfile_information"]["relative_file_paths"] = names
+    (path / "metadata.yaml").write_text(yaml.safe_dump(metadata))
+    if listed == "twice":
+        with pytest.raises(rosbag.BagDamaged, match=r"metadata\.yaml names copy_0\.mcap more than once.*--recover"):
+            BagReader(path)
+        with pytest.warns(UserWarning, match="more than once"):
+            assert len(list(BagReader(path, raw=True, recover=True))) == len(written)
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert len(list(BagReader(path, raw=True))) == len(written)
+
+
+def test_a_repair_that_fails_leaves_nothing_behind(bag, tmp_path, capsys):
+    """A bag that `repair` cannot read (here a file in it that is not MCAP, an error even when recovering): the
+    error line, and no bag at --out; it left a complete-looking bag with the messages read before the failure."""
+    source, _ = bag
+    path = tmp_path / "foreign"
+    shutil.copytree(source, path)
+    (path / "two_1.mcap").write_bytes(b"not an mcap file at all")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert rosbag.main(["repair", str(path), "--out", str(tmp_path / "fixed")]) == 1
+    assert capsys.readouterr().err.startswith(f"error: {path / 'two_1.mcap'} is not an MCAP file")
+    assert not (tmp_path / "fixed").exists()

@@ -27,6 +27,7 @@ import shutil
 import struct
 import sys
 import warnings
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator, NamedTuple
@@ -651,11 +652,16 @@ class BagReader:
                 # Kept even when files are missing: their topics' types and QoS are still right.
                 self.metadata = metadata
                 listed = [self.path / p for p in metadata["relative_file_paths"]]
+                # One file by two names ("a.mcap" twice, "../bag/a.mcap") would be read twice.
+                real = [os.path.realpath(p) for p in listed]
+                twice = sorted({Path(r).name for i, r in enumerate(real) if r in real[:i]})
                 if missing := [p.name for p in listed if not p.is_file()]:
                     self._unusable_metadata(f"{metadata_path} names files that are missing: {', '.join(missing)}",
                                             found)
+                elif twice:
+                    self._unusable_metadata(f"{metadata_path} names {', '.join(twice)} more than once", found)
                 else:
-                    if extra := [p for p in found if p not in listed]:
+                    if extra := [p for p in found if os.path.realpath(p) not in real]:
                         self._warn(f"bag {self.path}: reading .mcap files not named in metadata.yaml: "
                                    f"{', '.join(p.name for p in extra)}")
                     files = listed + extra
@@ -801,6 +807,13 @@ class BagReader:
                                 f"{footer.summary_start}, outside the file's {size} bytes before the footer",
                           "reading the data section instead")
             return None
+        # The footer's CRC covers the summary section and the footer's fields before it: a damaged summary (names of
+        # topics and types, where the chunks are) is not to be trusted, and the data section holds all of it again.
+        if footer.summary_crc and footer.summary_crc != zlib.crc32(data[footer_at : footer_at + 25],
+                                                                   zlib.crc32(data[footer.summary_start : footer_at])):
+            self._problem(scan, f"{scan.path}: corrupt summary section at byte {footer.summary_start} (its CRC does "
+                                "not match)", "reading the data section instead")
+            return None
         chunk_indexes = []
         try:
             for record in StreamReader(io.BytesIO(data[footer.summary_start :]), skip_magic=True).records:
@@ -810,7 +823,17 @@ class BagReader:
                     scan.schemas[record.id] = record
                 elif isinstance(record, Channel):
                     scan.channels[record.id] = record
+            end = MAGIC_SIZE  # chunks lie in the data section, one after another
+            for chunk_index in sorted(chunk_indexes, key=lambda c: c.chunk_start_offset):
+                if chunk_index.chunk_start_offset < end or chunk_index.chunk_length < 9:
+                    raise ValueError(f"a chunk index points at byte {chunk_index.chunk_start_offset}, inside "
+                                     "another record")
+                end = chunk_index.chunk_start_offset + chunk_index.chunk_length
+            if end > footer.summary_start:
+                raise ValueError(f"a chunk index points past the data section (to byte {end})")
         except (McapError, struct.error, ValueError) as exc:
+            scan.schemas.clear()  # nothing of a damaged summary is used
+            scan.channels.clear()
             self._problem(scan, f"{scan.path}: corrupt summary section at byte {footer.summary_start}: "
                                 f"{exc or type(exc).__name__}", "reading the data section instead")
             return None
@@ -828,11 +851,18 @@ class BagReader:
                 start = chunk_index.message_start_time
                 earliest = start if earliest is None else min(earliest, start)
                 release_at[chunk_index.chunk_start_offset] = earliest
-            yield from self._scan_records(scan, data, release_at or None)
+            chunk_lengths = {c.chunk_start_offset: c.chunk_length for c in chunk_indexes or []}
+            yield from self._scan_records(scan, data, release_at or None, chunk_lengths)
 
-    def _scan_records(self, scan: _FileScan, data, release_at: dict[int, int] | None) -> Iterator[tuple[int, int, Channel, bytes]]:
-        """Read the data section record by record; without `release_at` the file is sorted whole."""
+    def _scan_records(self, scan: _FileScan, data, release_at: dict[int, int] | None,
+                      chunk_lengths: dict[int, int] | None = None) -> Iterator[tuple[int, int, Channel, bytes]]:
+        """Read the data section record by record; without `release_at` the file is sorted whole.
+
+        `chunk_lengths` (chunk offset -> record length, from a summary that passed its CRC): each is checked to hold
+        a chunk record of that length, and a damaged record header cannot hide the chunks after it: reading goes on
+        at the next chunk the summary lists (without it, a damaged header ends what can be read, as a cut does)."""
         chunk_offsets = sorted(release_at) if release_at else []
+        listed = sorted(chunk_lengths) if chunk_lengths else []
         pending: list[tuple[int, int, Channel, bytes]] = []
         order = 0
         pos = MAGIC_SIZE
@@ -843,14 +873,35 @@ class BagReader:
             while pending and (until is None or pending[0][0] <= until):
                 yield heapq.heappop(pending)
 
+        def header(opcode: int | None, length: int) -> str:
+            return "an incomplete record header" if opcode is None else f"opcode 0x{opcode:02x}, {9 + length} bytes"
+
         while pos < size:
+            complete = pos + 9 <= size
+            opcode, length = (data[pos], struct.unpack_from("<Q", data, pos + 1)[0]) if complete else (None, 0)
+            if chunk_lengths and (expected := chunk_lengths.get(pos)) is not None:
+                if opcode != Opcode.CHUNK or 9 + length != expected:
+                    self._problem(scan, f"{scan.path}: corrupt record at byte {pos}: the summary lists a chunk of "
+                                        f"{expected} bytes there, the record's header says {header(opcode, length)}",
+                                  "skipped it and the messages in it")
+                    following = bisect.bisect_right(chunk_offsets, pos)
+                    if following < len(chunk_offsets):
+                        yield from release(release_at[chunk_offsets[following]])
+                    pos += expected
+                    continue
+            elif (following := bisect.bisect_right(listed, pos)) < len(listed) and (
+                    not complete or pos + 9 + length > listed[following] or opcode in (Opcode.DATA_END, Opcode.FOOTER)):
+                # A record before a chunk that the summary lists cannot run into it, nor end the data section.
+                self._problem(scan, f"{scan.path}: corrupt record at byte {pos} ({header(opcode, length)}): the "
+                                    f"summary lists a chunk at byte {listed[following]}",
+                              "skipped to that chunk, losing what lay between")
+                pos = listed[following]
+                continue
             if pos + 9 > size:
                 if not self.recover:
                     raise BagDamaged(f"{scan.path} is truncated at byte {pos} (incomplete record header); {RECOVER_ADVICE}")
                 cut_at = pos
                 break
-            opcode = data[pos]
-            (length,) = struct.unpack_from("<Q", data, pos + 1)
             end = pos + 9 + length
             if end > size:
                 if not self.recover:
@@ -962,8 +1013,8 @@ def repair(source: str | os.PathLike, out: str | os.PathLike, compression: str =
     the source's metadata.yaml lists (the default profile, with a warning, where those are unusable);
     publish times become log times. What could not be read is
     warned about, as BagReader(recover=True) does (an unusable metadata.yaml included: the .mcap
-    files beside it are read). Returns the number of messages written; BagUnreadable, and no `out`
-    left behind, if nothing is readable."""
+    files beside it are read). Returns the number of messages written; BagUnreadable if nothing is
+    readable. Whatever stops it (that, another BagError, an interrupt) leaves no bag at `out`."""
     reader = BagReader(source, raw=True, recover=True)
     listed = {entry["topic_metadata"]["name"]: entry["topic_metadata"]
               for entry in (reader.metadata or {}).get("topics_with_message_count", [])}
@@ -996,7 +1047,7 @@ def repair(source: str | os.PathLike, out: str | os.PathLike, compression: str =
             for message in reader:
                 writer.write(message.topic, message.log_time_ns, message.message)
                 count += 1
-    except BagUnreadable:  # nothing readable: no empty bag in its place
+    except BaseException:  # nothing readable, a file it cannot read, Ctrl-C, ...: no empty or partial bag in its place
         clean_up()
         raise
     return count
