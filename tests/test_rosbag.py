@@ -177,6 +177,16 @@ def test_group_episodes_assigns_frames_by_stamp(bag):
     stream.insert(second + 3, stream.pop(second))
     regrouped = list(group_episodes(stream))
     assert [len(e.messages["/ad_sim/view_0/mask"]) for e in regrouped] == [25, 25]
+    # The first episode's too (they were dropped as messages from before any instance); a recording that
+    # started mid-episode still drops what came before its first instance.
+    stream = list(BagReader(path))
+    stream.insert(3, stream.pop(0))
+    assert stream[0].topic != "/ad_sim/instance" and stream[3].topic == "/ad_sim/instance"
+    regrouped = list(group_episodes(stream))
+    assert [len(e.messages["/ad_sim/view_0/mask"]) for e in regrouped] == [25, 25]
+    assert [len(e.messages["/ad_sim/particles"]) for e in regrouped] == [25, 25]
+    late_start = [m for m in BagReader(path) if m.log_time_ns > 0.1e9]  # first instance at the next episode
+    assert len(list(group_episodes(late_start))) == 1
 
 
 # ------------------------------------------------------------------------------- errors

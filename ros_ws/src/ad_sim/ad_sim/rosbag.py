@@ -967,23 +967,29 @@ def group_episodes(messages: Iterable[BagMessage], instance_topic: str = "/ad_si
     """Split a log-time-ordered message stream into episodes at each instance message.
 
     A message belongs to the latest instance stamped at or before it; messages before the
-    first instance are dropped (a recording that started mid-episode)."""
+    first instance are dropped (a recording that started mid-episode), but for those stamped like it."""
     current: BagEpisode | None = None
+    before_first: dict[str, list] = {}  # messages before any instance, of the latest stamp only
     for topic, stamp, message in messages:
         if topic == instance_topic:
             following = BagEpisode(message, stamp)
+            # Frame-0 messages stamped like the instance may precede it in the file (a recorder writes in
+            # the order messages arrive), the first episode's included.
+            for name, items in (current.messages if current is not None else before_first).items():
+                moved = []
+                while items and items[-1][0] >= stamp:
+                    moved.append(items.pop())
+                if moved:
+                    following.messages[name] = moved[::-1]
             if current is not None:
-                # Frame-0 messages stamped like the instance may precede it in the file.
-                for name, items in current.messages.items():
-                    moved = []
-                    while items and items[-1][0] >= stamp:
-                        moved.append(items.pop())
-                    if moved:
-                        following.messages[name] = moved[::-1]
                 yield current
             current = following
         elif current is not None:
             current.messages.setdefault(topic, []).append((stamp, message))
+        else:
+            if any(items[-1][0] < stamp for items in before_first.values()):
+                before_first.clear()  # a later stamp: those before it cannot be the first instance's
+            before_first.setdefault(topic, []).append((stamp, message))
     if current is not None:
         yield current
 
