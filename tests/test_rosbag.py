@@ -196,7 +196,13 @@ def test_missing_and_empty_bags_are_clear_errors(tmp_path):
     with pytest.raises(BagError, match="does not exist"):
         BagReader(tmp_path / "nope")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(BagError, match="no .mcap"):
+    with pytest.raises(BagError, match=r"no .mcap file$"):
+        BagReader(tmp_path / "empty")
+    # A folder of bags is not a bag: the message names the ones in it (replay takes one)
+    for name in ("b", "a/x"):
+        (tmp_path / "empty" / name).mkdir(parents=True)
+        (tmp_path / "empty" / name / "bag_0.mcap").write_bytes(b"")
+    with pytest.raises(BagError, match=r"holds no .mcap file; the bags in it: a/x, b \(pass one\)"):
         BagReader(tmp_path / "empty")
     (tmp_path / "text.mcap").write_text("hello, this is not mcap")
     for read in (list, BagReader.topics):  # reading messages, or only the summary (replay does)

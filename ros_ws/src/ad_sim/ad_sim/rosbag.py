@@ -666,7 +666,9 @@ class BagReader:
                                    f"{', '.join(p.name for p in extra)}")
                     files = listed + extra
         if not files:
-            raise BagError(f"bag folder {self.path} holds no .mcap file")
+            inside = sorted({str(p.parent.relative_to(self.path)) for p in self.path.rglob("*.mcap")})
+            hint = f"; the bags in it: {', '.join(inside[:5])}{', ...' if len(inside) > 5 else ''} (pass one)" if inside else ""
+            raise BagError(f"bag folder {self.path} holds no .mcap file{hint}")
         return files
 
     def _unusable_metadata(self, problem: str, found: list[Path]) -> None:
