@@ -394,3 +394,22 @@ def test_ground_truth_of_another_material_is_left_out_saying_so(setup, tmp_path,
     assert [p["true_material"] for p in saved["frames"]["25"]] == ["plasticine", "sand"]
     assert saved["left_out"]["25"][0]["reason"] == "its material 'rubber' is none of jelly, plasticine, sand"
     assert "episodes left out of the rows K = 25: 1" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("edit_mask, reason", [
+    (lambda index, k, m: None if index == 2 else m, "it has no mask frame on the topic"),
+    (lambda index, k, m: {**m, "encoding": "32FC1"} if index == 2 else m, "all 25 of its mask frames are rejected"),
+])
+def test_an_episode_without_a_usable_frame_is_left_out_saying_so(setup, tmp_path, capsys, edit_mask, reason):
+    """An episode that gives no estimate at all (no mask frame recorded, or every one rejected) is left
+    out of every row with a warning and counted, not dropped silently: its family's column would read
+    n/a (or its n shrink) as if the bags held none of it."""
+    model, _ = setup
+    bag = write_test_bag(tmp_path / "bag", edit_mask=edit_mask)
+    with pytest.warns(UserWarning, match=rf"episode test-disc-sand-0002: left out of every row: {reason}"):
+        assert run_main(model, bag, tmp_path / "out", "--frames", "18") == 0
+    assert "episodes left out of the rows K = 25: 1, K = 18: 1" in capsys.readouterr().out
+    saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert [p["true_material"] for p in saved["frames"]["25"]] == ["jelly", "plasticine"]
+    assert [(e["episode_id"], e["reason"]) for e in saved["left_out"]["25"]] == [("test-disc-sand-0002", reason)]
+    assert saved["left_out"]["18"] == saved["left_out"]["25"]

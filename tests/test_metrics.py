@@ -327,3 +327,217 @@ def test_regl1_implied_by_a_rows_errors_is_the_regl1_of_its_clips():
     wide = {f: {n: (lo, lo + 2 * (hi - lo), s) if s == "linear" else (lo, lo * (hi / lo) ** 2, s)
                 for n, (lo, hi, s) in r.items()} for f, r in family_ranges().items()}
     assert regl1_from_errors(cells, wide) == pytest.approx(m["regl1"] / 2, rel=1e-12)
+
+
+# --------------------------------------------------------------------------- an independent reference of SPEC 8
+
+# SPEC 6's table, typed in here (not read from ad_sim.families): (low, high, log scale?). Sand's E and nu
+# are fixed, not sampled, so they are no parameter of sand's errors or RegL1.
+SPEC_RANGES = {
+    "jelly": {"youngs_modulus": (1.5e4, 1.5e6, True), "poissons_ratio": (0.20, 0.40, False)},
+    "plasticine": {"youngs_modulus": (5e4, 5e5, True), "poissons_ratio": (0.35, 0.48, False),
+                   "yield_stress": (500.0, 25000.0, True)},
+    "sand": {"friction_angle": (math.radians(10.0), math.radians(45.0), False)},
+}
+SPEC_FAMILIES = ("jelly", "plasticine", "sand")
+SPEC_PARAMETERS = ("youngs_modulus", "poissons_ratio", "yield_stress", "friction_angle")
+
+
+def _spec_metrics(true_class, true_params, probabilities, pred_params) -> dict:
+    """SPEC 8 from its text, one clip at a time in plain Python: Acc; E and yield log-MAE in ln;
+    nu MAE; phi MAE in degrees; errors over the family's correctly classified clips and over all of
+    them; RegL1 per clip = mean over the true family's sampled parameters of |pred - true| in units
+    of the family's sampling range (ln for E and yield), averaged over the family's clips and over all
+    clips. A non-positive E or yield prediction is read as 1e-12 (its log error stays finite)."""
+    def log(v):
+        return math.log(max(v, 1e-12))
+
+    def error(name, pairs):
+        if not pairs:
+            return math.nan
+        if name in ("youngs_modulus", "yield_stress"):
+            return sum(abs(log(p) - math.log(t)) for p, t in pairs) / len(pairs)
+        if name == "friction_angle":
+            return sum(abs(math.degrees(p) - math.degrees(t)) for p, t in pairs) / len(pairs)
+        return sum(abs(p - t) for p, t in pairs) / len(pairs)
+
+    n = len(true_class)
+    predicted = [max(range(3), key=lambda c: row[c]) for row in probabilities]  # first of a tie, as argmax
+    clip_regl1 = []
+    for i in range(n):
+        terms = []
+        for name, (lo, hi, is_log) in SPEC_RANGES[SPEC_FAMILIES[true_class[i]]].items():
+            p, t = pred_params[i][SPEC_PARAMETERS.index(name)], true_params[i][SPEC_PARAMETERS.index(name)]
+            span = math.log(hi) - math.log(lo) if is_log else hi - lo
+            terms.append(abs((log(p) - log(t)) if is_log else (p - t)) / span)
+        clip_regl1.append(sum(terms) / len(terms))
+    families = {}
+    for c, family in enumerate(SPEC_FAMILIES):
+        clips = [i for i in range(n) if true_class[i] == c]
+        correct = [i for i in clips if predicted[i] == c]
+        families[family] = {
+            "n": len(clips), "acc": len(correct) / len(clips) if clips else math.nan,
+            "regl1": sum(clip_regl1[i] for i in clips) / len(clips) if clips else math.nan,
+            **{which: {name: error(name, [(pred_params[i][SPEC_PARAMETERS.index(name)],
+                                           true_params[i][SPEC_PARAMETERS.index(name)]) for i in subset])
+                       for name in SPEC_RANGES[family]} for which, subset in (("correct", correct), ("all", clips))}}
+    confusion = [[sum(1 for i in range(n) if true_class[i] == t and predicted[i] == p) for p in range(3)]
+                 for t in range(3)]
+    return {"n": n, "accuracy": sum(predicted[i] == true_class[i] for i in range(n)) / n if n else math.nan,
+            "regl1": sum(clip_regl1) / n if n else math.nan, "families": families, "confusion": confusion}
+
+
+def _spec_truth(rng, family: int) -> list[float]:
+    """One instance of SPEC 6: log-uniform E and yield, uniform nu and phi; sand's fixed E and nu."""
+    row = [1e5, 0.3, NAN, NAN] if family == 2 else [NAN] * 4
+    for name, (lo, hi, is_log) in SPEC_RANGES[SPEC_FAMILIES[family]].items():
+        u = rng.uniform()
+        row[SPEC_PARAMETERS.index(name)] = lo * (hi / lo) ** u if is_log else lo + u * (hi - lo)
+    return row
+
+
+def _assert_same(code, reference, where=""):
+    if isinstance(reference, dict):
+        assert set(code) >= set(reference), where
+        for key, value in reference.items():
+            _assert_same(code[key], value, f"{where}/{key}")
+    elif isinstance(reference, list):
+        assert code == reference, where
+    elif math.isnan(reference):
+        assert math.isnan(code), where
+    else:
+        assert code == pytest.approx(reference, rel=1e-9, abs=1e-12), where
+
+
+def test_metrics_equal_an_independent_reference_of_spec_8_on_random_prediction_sets():
+    """compute_metrics against _spec_metrics on 400 seeded random prediction sets: any size from a single
+    clip, some families absent, some never predicted (no correct clip: n/a), predictions far outside the
+    sampling ranges (E down to 1e2 and up to 1e8, nu below 0 and above 0.5, phi up to 80 degrees),
+    non-positive E and yield, sand clips whose E and nu predictions are wild (they must not count), and
+    probability ties."""
+    rng = np.random.default_rng(2024)
+    for trial in range(400):
+        n = 1 if trial % 10 == 0 else int(rng.integers(2, 25))
+        present = rng.choice(3, size=int(rng.integers(1, 4)), replace=False)
+        classes = rng.choice(present, size=n)
+        true = np.array([_spec_truth(rng, c) for c in classes])
+        pred = np.column_stack([10 ** rng.uniform(2, 8, n), rng.uniform(-0.1, 0.6, n), 10 ** rng.uniform(1, 6, n),
+                                rng.uniform(0.0, math.radians(80.0), n)])
+        if trial % 7 == 0:
+            pred[rng.integers(n), 0] = -3.0  # a negative E
+            pred[rng.integers(n), 2] = 0.0  # a zero yield
+        probabilities = rng.dirichlet(np.ones(3), n)
+        if trial % 5 == 0:
+            probabilities[:, rng.integers(3)] = 0.0  # a family never predicted: none of its clips correct
+        if trial % 11 == 0:
+            probabilities[0] = [0.4, 0.4, 0.2]  # a tie
+        code = compute_metrics(Predictions(classes, true, probabilities, pred))
+        _assert_same(code, _spec_metrics(classes.tolist(), true.tolist(), probabilities.tolist(), pred.tolist()),
+                     f"trial {trial}")
+        np.testing.assert_allclose(regl1(Predictions(classes, true, probabilities, pred)),
+                                   [_spec_metrics([c], [t], [p], [q])["regl1"]
+                                    for c, t, p, q in zip(classes.tolist(), true.tolist(), probabilities.tolist(),
+                                                          pred.tolist())], rtol=1e-9)
+
+
+def test_regl1_ranges_are_spec_6s_sampled_parameters_of_each_family():
+    """RegL1 and the error columns use each family's own SPEC 6 range for its sampled parameters only:
+    sand's fixed E and nu count nowhere, however wrong their predictions."""
+    ranges = family_ranges()
+    assert {f: list(r) for f, r in ranges.items()} == {f: list(r) for f, r in SPEC_RANGES.items()}
+    for family, parameters in SPEC_RANGES.items():
+        for name, (lo, hi, is_log) in parameters.items():
+            assert ranges[family][name] == (pytest.approx(lo), pytest.approx(hi), "log" if is_log else "linear")
+    sand = np.array([SAND])
+    wild = sand.copy()
+    wild[0, :2] = [1e9, 0.49]  # E and nu: fixed for sand, whatever the head says
+    m = compute_metrics(Predictions([2], sand, _onehot([2]), wild))
+    assert m["regl1"] == 0.0 and list(m["families"]["sand"]["correct"]) == ["friction_angle"]
+
+
+def test_a_clip_without_finite_class_probabilities_is_refused():
+    """argmax reads NaN as the largest value: an all-NaN row would count as a confident jelly, raising
+    jelly's Acc. Such a clip has no predicted family, so the predictions are refused, naming it."""
+    true = np.array([JELLY, SAND])
+    probabilities = _onehot([0, 2])
+    probabilities[1] = NAN
+    with pytest.raises(ValueError, match="not finite for 1 clip.*e1"):
+        Predictions([0, 2], true, probabilities, _fill(true), episode_ids=["e0", "e1"])
+    probabilities[1] = [0.1, NAN, 0.8]  # would be read as plasticine
+    with pytest.raises(ValueError, match="not finite"):
+        Predictions([0, 2], true, probabilities, _fill(true))
+
+
+def test_a_nan_parameter_prediction_makes_its_cells_undefined_not_zero():
+    """A NaN parameter (e.g. a hand-edited predictions.json with null) is not dropped: its family's error
+    over the clips that hold it, that family's RegL1 and the overall RegL1 are NaN (null, n/a), as the
+    reference gives; the other cells stay defined."""
+    true = np.array([JELLY, JELLY, SAND])
+    pred = _fill(true)
+    pred[1, 0] = NAN  # the misclassified jelly's E
+    probabilities = _onehot([0, 2, 2])
+    m = compute_metrics(Predictions([0, 0, 2], true, probabilities, pred))
+    _assert_same(m, _spec_metrics([0, 0, 2], true.tolist(), probabilities.tolist(), pred.tolist()))
+    assert m["families"]["jelly"]["correct"]["youngs_modulus"] == 0.0  # the correct clip's E is exact
+    assert math.isnan(m["families"]["jelly"]["all"]["youngs_modulus"]) and math.isnan(m["regl1"])
+    assert m["families"]["sand"]["regl1"] == 0.0
+
+
+def test_confusion_matrix_is_true_by_predicted_and_plotted_so(tmp_path, monkeypatch):
+    """confusion[true][predicted]; the plot puts true families down the rows (y), predicted across (x),
+    each cell's count at its own place."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ad_estimator.metrics import _plot_confusion
+
+    # 3 jelly: 2 right, 1 as sand; 1 plasticine as jelly; 2 sand right.
+    classes, predicted = [0, 0, 0, 1, 2, 2], [0, 0, 2, 0, 2, 2]
+    true = np.array([(JELLY, PLASTICINE, SAND)[c] for c in classes])
+    confusion = compute_metrics(Predictions(classes, true, _onehot(predicted), _fill(true)))["confusion"]
+    assert confusion == [[2, 0, 1], [1, 0, 0], [0, 0, 2]]
+    fig, ax = plt.subplots()
+    _plot_confusion(ax, np.asarray(confusion))
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("predicted", "true")
+    assert [t.get_text() for t in ax.get_xticklabels()] == list(FAMILIES)
+    assert [t.get_text() for t in ax.get_yticklabels()] == list(FAMILIES)
+    cells = {(round(t.get_position()[0]), round(t.get_position()[1])): int(t.get_text()) for t in ax.texts}
+    assert all(cells[j, i] == confusion[i][j] for i in range(3) for j in range(3))  # text at x = predicted
+    assert ax.images[0].get_array()[0, 2] == 1 and ax.images[0].get_array()[1, 0] == 1  # row = true
+    plt.close(fig)
+
+
+def test_report_plots_give_each_family_one_colour(tmp_path, monkeypatch):
+    """pred_vs_true.png and regl1_vs_frames.png: a family has the same colour in every panel and plot
+    (the default cycle drew plasticine's yield and sand's phi in jelly's colour)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.axes import Axes
+    from matplotlib.colors import to_hex
+
+    drawn = []
+    scatter, plot = Axes.scatter, Axes.plot
+
+    def record_scatter(self, *args, **kwargs):
+        out = scatter(self, *args, **kwargs)
+        drawn.append((kwargs.get("label"), to_hex(out.get_facecolor()[0])))
+        return out
+
+    def record_plot(self, *args, **kwargs):
+        lines = plot(self, *args, **kwargs)
+        drawn.extend((kwargs.get("label"), to_hex(line.get_color())) for line in lines if kwargs.get("label"))
+        return lines
+
+    monkeypatch.setattr(Axes, "scatter", record_scatter)
+    monkeypatch.setattr(Axes, "plot", record_plot)
+    classes = np.array([0, 1, 2] * 3)
+    true = np.array([(JELLY, PLASTICINE, SAND)[c] for c in classes])
+    write_report({k: Predictions(classes, true, _onehot(classes), _fill(true)) for k in (25, 15)}, tmp_path, "t")
+    colours = {}
+    for label, colour in drawn:
+        colours.setdefault(label, set()).add(colour)
+    assert {f: len(colours[f]) for f in FAMILIES} == dict.fromkeys(FAMILIES, 1), colours
+    assert len({next(iter(colours[f])) for f in FAMILIES} | colours["all"]) == 4  # all distinct

@@ -480,3 +480,114 @@ def test_readme_paper_regl1_paragraph_is_what_the_rows_imply():
         assert text in paragraph, text
         assert text.split("0.", 1)[1][:3] == f"{value:.3f}"[2:], (text, value)
     assert rows["paper, Ours (Full)"][-1] == "0.067"
+
+
+# --------------------------------------------------------------------------- figures the tests above did not tie
+
+MODELS = ROOT / "ros_ws" / "src" / "ad_estimator" / "ad_estimator" / "models"
+BASELINE = ROOT / "docs" / "results" / "baseline_paper_unseen_32_h200.json"
+
+
+def test_readme_temporal_ood_table_has_every_k_of_spec_8():
+    """SPEC 8's temporal OOD is K in {24, 22, 18, 15}: the README's table has the full clip and each of them
+    (the test above checks the rows it finds; a row dropped from the table would pass it)."""
+    from ad_estimator.metrics import TEMPORAL_OOD_FRAMES
+
+    assert TEMPORAL_OOD_FRAMES == (24, 22, 18, 15)
+    rows = table_rows((ROOT / "README.md").read_text(), "### Temporal OOD")
+    assert [label for label in rows if re.fullmatch(r"\d+", label)] == ["25", "24", "22", "18", "15"]
+
+
+def test_readme_baseline_row_is_the_baseline_json():
+    """The per-scene CMA-ES row of the unseen table is the baseline JSON's metrics (its Acc cells, 1 by
+    construction, are written as 1)."""
+    rows = table_rows((ROOT / "README.md").read_text(), "### Unseen objects")
+    saved = json.loads(BASELINE.read_text())
+    expected = cells(format_table({"25": saved["metrics"]}).splitlines()[2])[1:]
+    row = rows["per-scene CMA-ES baseline (true family given; 32 random instances)"]
+    assert len(row) == len(expected)
+    assert [float(c) for c in row] == [float(c) for c in expected]
+    assert saved["config"]["instances"] == len(saved["fits"]) == 32 and saved["config"]["split"] == "unseen"
+
+
+# README "Re-simulation PSNR" row label -> its JSON (docs/results/paper/...)
+PSNR_ROWS = {
+    "shipped streaming student, 64 random unseen instances": "resim_psnr_shipped_unseen_64.json",
+    "previous shipped student (1 earlier frame), the same 64 instances": "resim_psnr_previous_frame_unseen_64.json",
+    "the student shipped before that (the current mask only), the same 64 instances":
+        "resim_psnr_full20_unseen_64.json",
+    "an older shipped student (SPEC loss weights), the same 64 instances":
+        "experiments/previous_shipped_resim_psnr_unseen_64.json",
+    "variant with alignment weight 1.0 (not shipped), the same 64 instances":
+        "experiments/align_weight1_resim_psnr_unseen_64.json",
+}
+
+
+def psnr_text(psnr: dict) -> str:
+    f = psnr["families"]
+    return (f"median {psnr['median']:.1f}, mean {psnr['mean']:.1f} (jelly {f['jelly']:.1f}, "
+            f"plasticine {f['plasticine']:.1f}, sand {f['sand']:.1f})")
+
+
+def test_readme_psnr_table_is_the_saved_runs():
+    """Every row of the re-simulation PSNR table is its JSON; the students' rows are on the same 64
+    instances; each JSON's summary is its own episodes' PSNRs; the baseline row is the baseline JSON."""
+    rows = table_rows((ROOT / "README.md").read_text(), "### Re-simulation PSNR")
+    episodes = None
+    for label, file in PSNR_ROWS.items():
+        result = json.loads((RESULTS / file).read_text())
+        assert rows[label][0] == psnr_text(result["psnr"]), label
+        psnr = np.array([e["psnr"] for e in result["episodes"]])
+        assert result["psnr"]["median"] == pytest.approx(np.median(psnr)) and result["psnr"]["mean"] == pytest.approx(
+            psnr.mean()), file
+        for family, value in result["psnr"]["families"].items():
+            assert value == pytest.approx(psnr[[e["true_material"] == family for e in result["episodes"]]].mean())
+        ids = [e["episode_id"] for e in result["episodes"]]
+        assert episodes is None or ids == episodes, file
+        episodes = ids
+    baseline = json.loads(BASELINE.read_text())
+    row = rows["per-scene CMA-ES baseline, 10 generations x 16 candidates, 32 random unseen instances"]
+    assert row[0] == f"median {baseline['psnr']['median']:.1f} (mean {baseline['psnr']['mean']:.1f}, capped at 100)"
+    assert row[1].startswith(f"{baseline['seconds_per_instance']:.2f} s on an H200")
+    assert (baseline["config"]["generations"], baseline["config"]["popsize"]) == (10, 16)
+
+
+# MODEL_CARD "Measured" row label -> metrics file
+CARD_ROWS = {"unseen (900)": "streaming_earlier3_reg2_unseen/metrics.json",
+             "seen (900)": "streaming_earlier3_reg2_seen/metrics.json",
+             "previous bundled model, unseen (1 earlier frame, RegL1 weight 1.0)":
+                 "streaming_previous_frame20_unseen/metrics.json"}
+
+
+def test_model_card_measured_table_and_psnr_are_the_metrics_files():
+    """The model card's table (the bundled model's figures a user reads first) and its PSNR sentence say
+    what the reports say; only its model id was tied before."""
+    card = (MODELS / "MODEL_CARD.md").read_text()
+    rows = table_rows(card, "## Measured")
+    for label, file in CARD_ROWS.items():
+        assert rows[label] == measured(RESULTS / file), label
+    shipped = json.loads((RESULTS / PSNR_ROWS["shipped streaming student, 64 random unseen instances"]).read_text())
+    previous = json.loads((RESULTS / "resim_psnr_previous_frame_unseen_64.json").read_text())
+    text = " ".join(card.split())
+    assert (f"Re-simulation PSNR on 64 unseen instances: median {shipped['psnr']['median']:.1f} dB, mean "
+            f"{shipped['psnr']['mean']:.1f} (the previous model's: median {previous['psnr']['median']:.1f}, mean "
+            f"{previous['psnr']['mean']:.1f}, on the same instances)") in text
+
+
+def test_the_runtime_metrics_are_the_runtime_predictions_scored_again():
+    """estimator_runtime.json (the check the shipped report is held to) is exactly what compute_metrics
+    gives on the saved per-episode predictions next to it, every cell."""
+    from ad_estimator.metrics import compute_metrics
+
+    folder = RESULTS / SHIPPED_REPORTS.format(split="unseen")
+    saved = json.loads((folder / "estimator_runtime_predictions.json").read_text())
+    # The file has no "parameter_names": its raw_parameters are in PARAMETER_NAMES order.
+    scored = compute_metrics(Predictions.from_episodes(saved["frames"]["25"]))
+    runtime = json.loads((folder / "estimator_runtime.json").read_text())["frames"]["25"]
+    assert scored["n"] == runtime["n"] == 900 and scored["confusion"] == runtime["confusion"]
+    assert scored["regl1"] == pytest.approx(runtime["regl1"], abs=1e-12)
+    for family, entry in runtime["families"].items():
+        assert scored["families"][family]["acc"] == pytest.approx(entry["acc"], abs=1e-12)
+        for subset in ("correct", "all"):
+            for name, value in entry[subset].items():
+                assert scored["families"][family][subset][name] == pytest.approx(value, abs=1e-12), (family, name)

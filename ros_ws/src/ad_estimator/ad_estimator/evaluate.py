@@ -5,7 +5,8 @@ window's slots (window.clip_output: the slots the live window holds when the epi
 ends), then model.predict. So the per-episode predictions equal what the live node publishes for
 the same frames. As in the node, a frame images.py rejects is skipped (with a warning, and counted)
 and an image size change restarts the window. An episode whose window holds fewer than K frame
-slots (cut short, or restarted) is left out of the K row, with a warning. Metrics (SPEC 8) come
+slots (cut short, or restarted) is left out of the K row, and one without a usable mask frame out
+of every row, with a warning. Metrics (SPEC 8) come
 from ad_estimator.metrics; --frames K adds the temporal out-of-distribution rows (only the first K
 frames observed). Needs no ROS runtime.
 """
@@ -218,6 +219,13 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
         result.skipped_frames += rejected
         warnings.warn(f"{where}: {len(rejected)} mask frame(s) skipped, as the node rejects them; the first at "
                       f"stamp {stamp_text(rejected[0]['stamp_ns'])}: {rejected[0]['reason']}")
+    if not frames:  # no estimate at all: said and counted, not dropped silently from every row
+        reason = (f"all {len(rejected)} of its mask frames are rejected" if rejected
+                  else "it has no mask frame on the topic")
+        warnings.warn(f"{where}: left out of every row: {reason}")
+        for k in frame_counts:
+            result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id, "reason": reason})
+        return
     if changes := [i for i in range(1, len(masks)) if masks[i].shape != masks[i - 1].shape]:
         before, after = masks[changes[0] - 1].shape, masks[changes[0]].shape
         warnings.warn(f"{where}: the image size changes from {before[1]}x{before[0]} to {after[1]}x{after[0]} at "

@@ -85,6 +85,12 @@ class Predictions:
         for name, shape in expected.items():
             if getattr(self, name).shape != shape:
                 raise ValueError(f"Predictions.{name} has shape {getattr(self, name).shape}, expected {shape}")
+        # argmax reads a NaN as the largest value: a clip without class probabilities would count as a
+        # confident prediction of the first class with a NaN (jelly, for an all-NaN row) and raise its Acc.
+        if bad := np.flatnonzero(~np.isfinite(self.probabilities).all(axis=1)).tolist():
+            ids = [self.episode_ids[i] if self.episode_ids else str(i) for i in bad[:3]]
+            raise ValueError(f"Predictions.probabilities are not finite for {len(bad)} clip(s) (first: "
+                             f"{', '.join(ids)}); a clip without class probabilities has no predicted family")
 
     @property
     def pred_class(self) -> np.ndarray:
@@ -455,6 +461,11 @@ def format_error_by_true_value(table: dict, frames: int) -> str:
         "", *markdown_table(["family", "parameter", *names, "all", "constant guess", "correlation"], rows)])
 
 
+#: Each family's colour in the report's plots (matplotlib's default cycle would give plasticine's yield
+#: and sand's phi jelly's colour, and shift every family in the RegL1 plot).
+FAMILY_COLORS = {family: f"C{i}" for i, family in enumerate(FAMILIES)}
+
+
 def _plot_confusion(ax, confusion: np.ndarray) -> None:
     ax.imshow(confusion, cmap="Blues")
     ax.set_xticks(range(len(FAMILIES)), FAMILIES)
@@ -499,7 +510,7 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
             t, p = full.true_params[rows, j], full.pred_params[rows, j]
             if name == "friction_angle":
                 t, p = np.degrees(t), np.degrees(p)
-            ax.scatter(t, p, s=8, label=family)
+            ax.scatter(t, p, s=8, label=family, color=FAMILY_COLORS[family])  # one colour per family in every plot
         lims = [min(ranges[f][name][0] for f in families), max(ranges[f][name][1] for f in families)]
         if name == "friction_angle":
             lims = list(np.degrees(lims))
@@ -516,9 +527,10 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
 
     ks = sorted(by_frames)
     fig, ax = plt.subplots(figsize=(5, 4))
-    ax.plot(ks, [results[str(k)]["regl1"] for k in ks], "o-", label="all")
+    ax.plot(ks, [results[str(k)]["regl1"] for k in ks], "o-", label="all", color="k")
     for family in FAMILIES:
-        ax.plot(ks, [results[str(k)]["families"][family]["regl1"] for k in ks], ".--", label=family)
+        ax.plot(ks, [results[str(k)]["families"][family]["regl1"] for k in ks], ".--", label=family,
+                color=FAMILY_COLORS[family])
     ax.set_xlabel("frames observed")
     ax.set_ylabel("RegL1")
     ax.legend()
