@@ -757,3 +757,76 @@ def test_estimator_runtime_never_imports_torch_nor_warp():
             "ad_estimator.model, ad_estimator.metrics; print(sorted({'torch', 'warp', 'scipy'} & set(sys.modules)))")
     probe = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert probe.returncode == 0 and probe.stdout.strip() == "[]", probe.stdout + probe.stderr
+
+
+def test_an_overtaken_first_frame_is_checked_for_framing_as_the_episodes_first(ros, model_paths):
+    """The episode's true first frame, overtaken at the release, restarts the episode from itself (no new episode
+    is counted): its framing went unchecked, so an episode whose first frame showed the object framed unlike
+    training was not counted nor warned about when frame 1 arrived first. Counted once per episode."""
+    t = start(ros, model_paths["streaming"])
+    for t0, (first, second) in ((10**9, (0.8, 0.3)), (5 * 10**9, (0.8, 0.8))):
+        order = [(t0 + DT, second), (t0, first), (t0 + 2 * DT, second)]  # frames 1 and 0 swapped upstream
+        for stamp, diameter in order:
+            t.publisher.publish(image_msg(disc(512, diameter), stamp))
+    assert wait_for(lambda: t.node.statistics()["processed"] == 6)
+    stats = t.node.statistics()
+    assert (stats["late"], stats["errors"], t.node.window.episodes) == (0, 0, 2)
+    assert stats["off_framing"] == 2  # the first episode by its true first frame, the second once
+
+
+def test_an_estimate_flushed_by_the_next_episode_does_not_take_its_encoding_time(ros, model_paths):
+    """The first frame of an episode flushes the estimate of the one before (anytime policy): that estimate's
+    inference_time included the new frame's encoding, which it does not use."""
+    t = start(ros, model_paths["streaming"], output_policy="anytime", min_frames=10, every_n=5)
+    publish_episode(t, falling_masks(seed=15)[:12], 10**9)
+    assert wait_for(lambda: t.node.statistics()["processed"] == 12 and len(t.estimates) == 1)
+    encode = t.node.model.encode
+
+    def slow_encode(*args):
+        time.sleep(0.3)
+        return encode(*args)
+
+    t.node.model.encode = slow_encode
+    t.publisher.publish(image_msg(falling_masks(seed=16)[0], 3 * 10**9))
+    assert wait_for(lambda: len(t.estimates) == 2)
+    flushed = t.estimates[1]
+    assert flushed.frames_used == 12 and stamp_ns(flushed.oldest_stamp) == 10**9
+    assert 0 < flushed.inference_time < 0.3, flushed.inference_time
+
+
+def test_a_second_sigint_while_a_clip_call_holds_up_the_shutdown_exits_cleanly(ros, model_paths):
+    """SIGINT while ~/estimate works on a clip: the node waits (up to 2 s) for the call. A second SIGINT then
+    raised KeyboardInterrupt out of that wait: a traceback, no rclpy shutdown, and an abort (C++ terminate)."""
+    code = ("import sys, time\nfrom ad_estimator import node\n"
+            "def slow_clip(self, frames):\n    print('clip call started', flush=True)\n    time.sleep(60)\n"
+            "node.EstimatorNode.estimate_clip = slow_clip\n"
+            f"sys.exit(node.main(['node', '--ros-args', '-p', 'model_path:={model_paths['streaming']}']))\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+
+        def read_until(text):
+            while not any(text in line for line in lines):
+                lines.append(proc.stdout.readline())
+                if not lines[-1]:
+                    raise AssertionError("".join(lines))
+
+        read_until("model test-streaming")
+        context, _ = ros
+        client_node = Node("clip_caller", context=context)
+        ros[1].add_node(client_node)
+        client = client_node.create_client(EstimateMaterial, "/ad_estimator/estimate")
+        assert client.wait_for_service(timeout_sec=10)
+        client.call_async(EstimateMaterial.Request(frames=[image_msg(m, 0) for m in falling_masks(seed=3)[:3]]))
+        read_until("clip call started")
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.5)  # in the wait for the clip call
+        stopped = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        out = "".join(lines) + proc.communicate(timeout=20)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and "Traceback" not in out and "terminate called" not in out, out
+    assert "shutting down" in out and time.monotonic() - stopped < 5, out

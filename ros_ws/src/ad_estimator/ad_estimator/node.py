@@ -121,6 +121,7 @@ class EstimatorNode(Node):
         self._stop = threading.Event()
         self._last_frame_time = time.monotonic()
         self._unheard_publisher = False  # an incompatible publisher was seen and no frame has arrived since
+        self._episode_off_framing = False  # the current episode was counted (and warned about) off framing
         self.warn = Throttle(self.get_logger().warning)
 
         reliability = ReliabilityPolicy.RELIABLE if p["reliable"] else ReliabilityPolicy.BEST_EFFORT
@@ -221,10 +222,10 @@ class EstimatorNode(Node):
         def encode(frame, earlier):
             start = time.perf_counter()
             feature = self.model.encode(frame, earlier)
-            encode_time[0] = time.perf_counter() - start
+            encode_time[0] += time.perf_counter() - start  # an episode restarted from an overtaken frame re-encodes
             return feature
 
-        episodes, last = self.window.episodes, self.window.last_stamp_ns
+        episodes, last, start = self.window.episodes, self.window.last_stamp_ns, self.window.episode_start_ns
         late, duplicates = self.window.stats.late, self.window.stats.duplicates
         without_estimate = self.window.stats.without_estimate
         outputs = self.window.add(stamp, mask, encode)
@@ -237,7 +238,12 @@ class EstimatorNode(Node):
             self.warn("without_estimate", f"episode {episodes} ended with {slots} settled frame slots and no "
                                           f"estimate: {need}")
         if self.window.episodes != episodes:  # this frame started an episode
-            self._check_framing(mask)
+            self._episode_off_framing = self._check_framing(mask) is not None
+        elif self.window.episode_start_ns != start:
+            # The episode's true first frame, overtaken at the release: the window started the episode again from
+            # it. The framing check is of the first frame (as the clip service's); the episode is counted once.
+            if not self._episode_off_framing:
+                self._episode_off_framing = self._check_framing(mask) is not None
         elif self.window.stats.late != late:
             self._count("late")
             self.warn("late", f"frame stamped {stamp / 1e9:.3f} s came after one stamped {last / 1e9:.3f} s: dropped "
@@ -248,7 +254,10 @@ class EstimatorNode(Node):
                                    "that does not stamp its images gives no estimates, so stamp each mask with the "
                                    "capture time of its image")
         self._count("processed")
-        return [self._publish(out, msg.header.frame_id, arrival, encode_time[0]) for out in outputs]
+        # This frame's encoding belongs to estimates of its own episode only: an estimate of the episode before that
+        # this frame's restart flushed out was not made any slower by it.
+        return [self._publish(out, msg.header.frame_id, arrival,
+                              encode_time[0] if out.episode == self.window.episodes else 0.0) for out in outputs]
 
     def _check_framing(self, frame) -> str | None:
         """Warn when an episode starts with the object framed unlike any training clip; the warning, if any."""
@@ -457,11 +466,16 @@ class EstimatorNode(Node):
 
     def destroy_node(self) -> None:
         self._stop.set()
-        if self.worker.is_alive():
-            self.worker.join(timeout=2.0)
-        if self.clip_server.is_alive():
-            self.clip_server.join(timeout=2.0)
-        self.clip_executor.shutdown(timeout_sec=1.0)
+        try:  # the threads finish what they do (a clip call: up to 2 s more)
+            if self.worker.is_alive():
+                self.worker.join(timeout=2.0)
+            if self.clip_server.is_alive():
+                self.clip_server.join(timeout=2.0)
+            self.clip_executor.shutdown(timeout_sec=1.0)
+        except KeyboardInterrupt:
+            # A second Ctrl-C while they do: stop waiting. Raised out of here, it skipped the clean-up below and
+            # rclpy's shutdown, and the process died of a traceback and an abort (C++ terminate) instead.
+            pass
         self.clip_node.destroy_node()
         super().destroy_node()
 

@@ -176,6 +176,12 @@ class FrameWindow:
         return self._last_ns
 
     @property
+    def episode_start_ns(self) -> int | None:
+        """Stamp of the current episode's first frame (None before its first): it moves back, the episode count
+        staying, when the true first frame arrives overtaken."""
+        return self._start_ns
+
+    @property
     def active(self) -> bool:
         """An episode has started and its final estimate is not out yet."""
         return self._start_ns is not None and not self._done
