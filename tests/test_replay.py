@@ -219,6 +219,17 @@ def test_what_ros2_bag_record_writes_for_a_discovered_publisher_takes_the_defaul
             ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.TRANSIENT_LOCAL, HistoryPolicy.KEEP_LAST, 100)
 
 
+def test_a_topic_metadata_yaml_leaves_out_is_replayed_with_the_files_type(sample_bag, ros_domain_id):
+    """topics_with_message_count: [] passed validation, then replay died of KeyError on the first message."""
+    metadata_file = sample_bag / "metadata.yaml"
+    metadata = yaml.safe_load(metadata_file.read_text())
+    metadata["rosbag2_bagfile_information"]["topics_with_message_count"] = []
+    metadata_file.write_text(yaml.safe_dump(metadata))
+    proc = run("ad_estimator.replay", str(sample_bag), "--quiet", "--delay", "0", "--rate", "100")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and out.splitlines()[-1] == f"replay: published 306 messages from {sample_bag}", out
+
+
 def test_replay_of_a_bag_with_unusable_recorded_qos_plays_it_all(sample_bag, ros_domain_id):
     """The command line: a warning line for that topic, then the whole bag (it was refused, naming no topic)."""
     metadata_file = sample_bag / "metadata.yaml"

@@ -65,14 +65,15 @@ def qos_from_recorded(topic: str, profiles) -> QoSProfile:
 
 
 def recorded_topics(reader: BagReader) -> dict[str, tuple[str, QoSProfile]]:
-    """topic -> (type, QoS) from metadata.yaml, or from the files with simulator defaults."""
-    if reader.metadata is not None:
-        result = {}
-        for entry in reader.metadata.get("topics_with_message_count", []):
-            meta = entry["topic_metadata"]
-            result[meta["name"]] = (meta["type"], qos_from_recorded(meta["name"], meta.get("offered_qos_profiles")))
-        return result
-    return {topic: (type_name, qos_from_recorded(topic, None)) for topic, type_name in reader.topics().items()}
+    """topic -> (type, QoS): as metadata.yaml lists it, else (no metadata.yaml, or one that leaves the topic out)
+    the files' type with the simulator's defaults."""
+    listed = {entry["topic_metadata"]["name"]: entry["topic_metadata"]
+              for entry in (reader.metadata or {}).get("topics_with_message_count", [])}
+    result = {topic: (type_name, qos_from_recorded(topic, None))
+              for topic, type_name in reader.topics().items() if topic not in listed}
+    for name, meta in listed.items():
+        result[name] = (meta["type"], qos_from_recorded(name, meta.get("offered_qos_profiles")))
+    return result
 
 
 class Replayer:
