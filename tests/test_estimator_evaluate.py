@@ -341,7 +341,9 @@ def test_a_topic_that_is_not_an_image_is_named(setup, tmp_path, capsys):
 
 def test_a_missing_topic_names_the_bags_image_topics(setup, tmp_path, capsys):
     model, bag = setup
-    assert run_main(model, bag, tmp_path / "out", "--topic", "/cam/mask") == 1
+    with pytest.warns(UserWarning) as said:
+        assert run_main(model, bag, tmp_path / "out", "--topic", "/cam/mask") == 1
+    assert [str(w.message) for w in said] == [f"{bag}: 3 episode(s) left out of every row: it has no mask frame on the topic"]
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no episode with 25 frames on /cam/mask" in err, err
     assert err.rstrip().endswith("the bags' image topics: /ad_sim/view_0/mask (pass one with --topic)"), err
@@ -406,7 +408,10 @@ def test_an_episode_without_a_usable_frame_is_left_out_saying_so(setup, tmp_path
     n/a (or its n shrink) as if the bags held none of it."""
     model, _ = setup
     bag = write_test_bag(tmp_path / "bag", edit_mask=edit_mask)
-    with pytest.warns(UserWarning, match=rf"episode test-disc-sand-0002: left out of every row: {reason}"):
+    # (no frame at all is said once a bag, with the count: a wrong --topic would give a line an episode)
+    said = rf"episode test-disc-sand-0002: left out of every row: {reason}" if "rejected" in reason else \
+        rf"{bag}: 1 episode\(s\) left out of every row: {reason}"
+    with pytest.warns(UserWarning, match=said):
         assert run_main(model, bag, tmp_path / "out", "--frames", "18") == 0
     assert "episodes left out of the rows K = 25: 1, K = 18: 1" in capsys.readouterr().out
     saved = json.loads((tmp_path / "out" / "predictions.json").read_text())

@@ -196,10 +196,16 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
     result = Evaluation({k: [] for k in frame_counts}, left_out={k: [] for k in frame_counts})
     with tqdm(desc="episodes", unit="ep", disable=not progress, file=sys.stderr) as bar:
         for bag in bags:
+            before = len(result.left_out[frame_counts[0]])
             for instance, frames in episode_frames(bag, mask_topic, recover, result.source_problems):
                 score_episode(model, bag, instance, frames, frame_counts, result)
                 bar.update()
+            if silent := sum(e["reason"] == NO_FRAME for e in result.left_out[frame_counts[0]][before:]):
+                warnings.warn(f"{bag}: {silent} episode(s) left out of every row: {NO_FRAME}")  # one line a bag
     return result
+
+
+NO_FRAME = "it has no mask frame on the topic"
 
 
 def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_counts: list[int],
@@ -220,9 +226,9 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
         warnings.warn(f"{where}: {len(rejected)} mask frame(s) skipped, as the node rejects them; the first at "
                       f"stamp {stamp_text(rejected[0]['stamp_ns'])}: {rejected[0]['reason']}")
     if not frames:  # no estimate at all: said and counted, not dropped silently from every row
-        reason = (f"all {len(rejected)} of its mask frames are rejected" if rejected
-                  else "it has no mask frame on the topic")
-        warnings.warn(f"{where}: left out of every row: {reason}")
+        reason = f"all {len(rejected)} of its mask frames are rejected" if rejected else NO_FRAME
+        if rejected:  # (evaluate says NO_FRAME once a bag: a wrong --topic would give a line an episode)
+            warnings.warn(f"{where}: left out of every row: {reason}")
         for k in frame_counts:
             result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id, "reason": reason})
         return
