@@ -19,6 +19,7 @@ import sys
 import threading
 import time
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
 import rclpy
@@ -38,7 +39,7 @@ from std_srvs.srv import Trigger
 from ad_estimator.images import ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, TRAINED_EXTENT, Estimate, EstimatorModel, ModelError, object_extent
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
-from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
+from ad_estimator.window import WindowOutput, clip_output, clip_stamps, ns_to_stamp, stamp_to_ns
 from ad_sim.dds import declare_parameters, node_cli, number
 
 LOG_THROTTLE_S = 5.0
@@ -52,6 +53,12 @@ GIL_SWITCH_INTERVAL_S = 0.0005
 def to_time(ns: int) -> Time:
     sec, nanosec = ns_to_stamp(ns)
     return Time(sec=sec, nanosec=nanosec)
+
+
+def stamp_text(ns: int) -> str:
+    """A stamp as sec.nanosec, exactly (a float of ns since 1970 rounds them)."""
+    sec, nanosec = ns_to_stamp(ns)
+    return f"{sec}.{nanosec:09d}"
 
 
 def estimate_message(estimate: Estimate, window: WindowOutput, frame_id: str, model_id: str,
@@ -118,6 +125,10 @@ class EstimatorNode(Node):
         self._lock = threading.Lock()  # counters and queue clearing
         self._generation = 0  # bumped by ~/reset; the worker resets its window when it sees a new one
         self._window_generation = 0
+        # Held by ~/reset as it bumps the generation, and by the worker as it publishes: once ~/reset has answered,
+        # no estimate of the episode it forgot goes out (one being computed then is discarded).
+        self._reset_lock = threading.Lock()
+        self._frame_id = ""  # of the last frame the worker processed: the camera of the episode it belongs to
         self._stop = threading.Event()
         self._last_frame_time = time.monotonic()
         self._unheard_publisher = False  # an incompatible publisher was seen and no frame has arrived since
@@ -254,10 +265,11 @@ class EstimatorNode(Node):
                                    "that does not stamp its images gives no estimates, so stamp each mask with the "
                                    "capture time of its image")
         self._count("processed")
+        previous_frame_id, self._frame_id = self._frame_id, msg.header.frame_id
         # This frame's encoding belongs to estimates of its own episode only: an estimate of the episode before that
-        # this frame's restart flushed out was not made any slower by it.
-        return [self._publish(out, msg.header.frame_id, arrival,
-                              encode_time[0] if out.episode == self.window.episodes else 0.0) for out in outputs]
+        # this frame's restart flushed out was not made any slower by it, nor taken by its camera (frame_id).
+        return [self._publish(out, msg.header.frame_id, arrival, encode_time[0]) if out.episode == self.window.episodes
+                else self._publish(out, previous_frame_id, arrival, 0.0) for out in outputs]
 
     def _check_framing(self, frame) -> str | None:
         """Warn when an episode starts with the object framed unlike any training clip; the warning, if any."""
@@ -276,7 +288,10 @@ class EstimatorNode(Node):
         estimate = self.model.predict(out.features, out.valid)
         model_time = estimate.inference_time + encode_time
         msg = estimate_message(estimate, out, frame_id, self.info.model_id, model_time)
-        self.publisher.publish(msg)
+        with self._reset_lock:
+            if self._window_generation != self._generation:  # ~/reset came meanwhile: this episode is forgotten
+                return msg
+            self.publisher.publish(msg)
         self._count("published")
         with self._lock:
             self.model_times.append(model_time)
@@ -287,7 +302,6 @@ class EstimatorNode(Node):
         return msg
 
     def _work(self) -> None:
-        frame_id = ""
         while not self._stop.is_set():
             try:
                 arrival, generation, msg = self.queue.get(timeout=0.05)
@@ -296,14 +310,13 @@ class EstimatorNode(Node):
                 idle = time.monotonic() - self._last_frame_time
                 if self.idle_flush > 0 and idle > self.idle_flush and self.window.active:
                     for out in self.window.flush():
-                        self._guarded(self._publish, out, frame_id, None, 0.0)
+                        self._guarded(self._publish, out, self._frame_id, None, 0.0)
                 continue
             if generation != self._generation:  # queued as ~/reset cleared the queue: it belongs to the old window
                 self._count("cleared_by_reset")
                 continue
             self._sync_reset(generation)
             self._last_frame_time = time.monotonic()
-            frame_id = msg.header.frame_id
             self._guarded(self.handle_frame, msg, arrival)
 
     def _sync_reset(self, generation: int) -> None:
@@ -323,7 +336,7 @@ class EstimatorNode(Node):
     # ------------------------------------------------------------------ services
 
     def on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        with self.queue.mutex:  # frames that arrived before the reset belong to the old window
+        with self._reset_lock, self.queue.mutex:  # frames that arrived before the reset belong to the old window
             cleared = len(self.queue.queue)
             self.queue.queue.clear()
             self._generation += 1
@@ -361,29 +374,62 @@ class EstimatorNode(Node):
             raise ValueError("empty clip: send at least one frame")
         if len(frames) > MAX_CLIP_FRAMES:
             raise ValueError(f"clip of {len(frames)} frames exceeds {MAX_CLIP_FRAMES}")
+        stamps = []
         for i, frame in enumerate(frames):  # headers first: nothing is converted if any frame is bad
             try:
                 check_header(frame.height, frame.width, frame.encoding, frame.step, self.max_pixels)
-            except ImageRejected as exc:
+                stamps.append(stamp_to_ns(frame.header.stamp.sec, frame.header.stamp.nanosec))
+            except ValueError as exc:  # ImageRejected, or a malformed stamp
                 raise ValueError(f"frame {i}: {exc}") from exc
             if (frame.width, frame.height) != (frames[0].width, frames[0].height):
                 # a stream would restart its window here; a clip is one episode of one camera
                 raise ValueError(f"frame {i}: {frame.width}x{frame.height}, frame 0: {frames[0].width}x"
                                  f"{frames[0].height}; clip frames must all have the same size")
-        start = time.perf_counter()
+        unstamped = len(stamps) > 1 and len(set(stamps)) == 1
+        for i in range(1, len(stamps) if not unstamped else 0):
+            if stamps[i] <= stamps[i - 1]:
+                raise ValueError(f"frame {i}: stamp {stamp_text(stamps[i])} s is not after frame {i - 1}'s "
+                                 f"({stamp_text(stamps[i - 1])} s); clip stamps must be strictly increasing, oldest "
+                                 "first (or all equal: frames on the model's interval)")
+        slot_stamps = clip_stamps(stamps, self.info.frame_interval)
+        # Frames past the last slot's reach are used in no slot: the first of them only settles the slots (complete),
+        # the rest change nothing. So they are not converted (a long clip whose object leaves the view later still
+        # gets its estimate), and the first one is put just past the reach: a stamp days later (a first frame stamped
+        # 0, the others with the clock) would otherwise be out of the window's range.
+        interval_ns = int(round(self.info.frame_interval * 1e9))
+        reach_ns = (slot_stamps[0] + (self.info.frame_count - 1) * interval_ns
+                    + int(round(self.slot_tolerance * interval_ns)))
+        used = next((i for i, s in enumerate(slot_stamps) if s > reach_ns), len(frames))
         masks = []
-        for i, frame in enumerate(frames):
+        for i, frame in enumerate(frames[:used]):
             try:
                 masks.append(image_to_mask(frame, self.max_pixels, self.threshold))
             except ImageRejected as exc:
                 raise ValueError(f"frame {i}: {exc}") from exc
+        slot_stamps = slot_stamps[:used]
+        if used < len(frames):
+            masks.append(np.zeros_like(masks[-1]))  # encoded never: it lands in no slot
+            slot_stamps.append(reach_ns + 1)
         framing = self._check_framing(masks[0])
-        stamps = [stamp_to_ns(f.header.stamp.sec, f.header.stamp.nanosec) for f in frames]
-        out = clip_output(stamps, masks, self.model.encode, self.info.frame_interval, self.info.frame_count,
-                          slot_tolerance=self.slot_tolerance, history=self.info.previous_frames)
-        estimate = self.model.predict(out.features, out.valid)
-        return estimate_message(estimate, out, frames[-1].header.frame_id, self.info.model_id,
-                                time.perf_counter() - start), framing
+        model_time = [0.0]
+
+        def timed(function, *args):
+            start = time.perf_counter()
+            try:
+                return function(*args)
+            finally:
+                model_time[0] += time.perf_counter() - start
+
+        out = clip_output(slot_stamps, masks, lambda *args: timed(self.model.encode, *args), self.info.frame_interval,
+                          self.info.frame_count, slot_tolerance=self.slot_tolerance, history=self.info.previous_frames)
+        estimate = timed(self.model.predict, out.features, out.valid)
+        # header.stamp and oldest_stamp are the stamps the frames carry: those of a clip of equal stamps, spread on
+        # the model's interval for the slots only, are no capture time (they lay up to 0.6 s after all of them).
+        index = {stamp: i for i, stamp in enumerate(slot_stamps)}
+        oldest, newest = index[out.oldest_stamp_ns], index[out.newest_stamp_ns]
+        out = replace(out, oldest_stamp_ns=stamps[oldest], newest_stamp_ns=stamps[newest])
+        return estimate_message(estimate, out, frames[newest].header.frame_id, self.info.model_id,
+                                model_time[0]), framing
 
     # ------------------------------------------------------------------ diagnostics
 
