@@ -255,3 +255,39 @@ def test_an_install_that_fails_half_way_leaves_the_installed_model_whole(tmp_pat
     pipeline.install(head, tmp_path / "second" / "student.metrics.json", installed)
     assert EstimatorModel.load(installed / "default.onnx").model_id == "second"
     assert sorted(p.name for p in installed.iterdir()) == sorted(before)
+
+
+def test_bags_generated_with_another_seed_are_refused_not_used(tmp_path, monkeypatch, capsys):
+    """`pipeline --seed 1` generates the seed-1 benchmark into an empty --data, but trained on seed-0 bags that an
+    earlier run had left there, without a word: the same command gave other models depending on the disk."""
+    import ad_sim.generate
+    from ad_sim.rosbag import BagWriter
+
+    from training import train_teacher
+
+    data = tmp_path / "bags"
+    for split in ("train", "seen", "unseen"):
+        folder = data / "tiny" / split / f"{split}-0of1"
+        with BagWriter(folder, custom_data={"generator": "ad_sim.generate", "shard": "0/1", "size": "tiny",
+                                            "split": split, "seed": "0"}):
+            pass
+        (folder / "DONE").write_text("{}\n")
+    generated = []
+    monkeypatch.setattr(ad_sim.generate, "main", lambda argv: generated.append(argv) or 0)
+
+    def training_starts(args):
+        raise KeyboardInterrupt  # (exit 130): stands for the training the bags were used for
+
+    monkeypatch.setattr(train_teacher, "run", training_starts)
+    args = ["pipeline", "--size", "tiny", "--out", str(tmp_path / "run"), "--device", "cpu", "--no-progress"]
+    assert main([*args, "--data", str(data), "--seed", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "generated with --seed 0" in err and "--data-seed 0" in err and "Traceback" not in err
+    assert generated == [] and not (tmp_path / "run").exists()
+    # The same bags, asked for by their seed (training seed 1 on the seed-0 benchmark), or with their own seed:
+    assert main([*args, "--data", str(data), "--seed", "1", "--data-seed", "0"]) == 130
+    assert main([*args, "--data", str(data), "--seed", "0"]) == 130
+    assert generated == []
+    # An empty --data is generated with the seed asked for, as before.
+    assert main([*args, "--data", str(tmp_path / "empty"), "--seed", "1"]) == 130
+    assert [argv[argv.index("--seed") + 1] for argv in generated] == ["1", "1", "1"]

@@ -27,8 +27,35 @@ LR = {"tiny": 1e-3, "small": 5e-4, "paper": 1e-4}
 SPLITS = ("train", "seen", "unseen")
 
 
+def generated_seeds(folder: Path) -> set[str]:
+    """The benchmark seeds (`ad_sim.generate --seed`) recorded in the metadata.yaml of the bags under `folder`
+    that generate wrote from a benchmark split; bags from elsewhere (recorded, an instance file, unreadable
+    metadata) record none and are left to the later stages."""
+    import yaml
+
+    seeds = set()
+    for path in folder.rglob("metadata.yaml"):
+        try:
+            info = (yaml.safe_load(path.read_text()) or {}).get("rosbag2_bagfile_information") or {}
+            custom = info.get("custom_data") or {}
+        except (OSError, ValueError, AttributeError, yaml.YAMLError):
+            continue
+        if isinstance(custom, dict) and custom.get("generator") == "ad_sim.generate" and "seed" in custom:
+            seeds.add(str(custom["seed"]))
+    return seeds
+
+
+def check_data_seed(folder: Path, seed: int) -> None:
+    """ValueError if bags under `folder` were generated with another benchmark seed than `seed`."""
+    if other := sorted(generated_seeds(folder) - {str(seed)}):
+        raise ValueError(f"{folder} holds bags generated with --seed {', '.join(other)}, not the benchmark seed "
+                         f"{seed} asked for (--data-seed, default --seed); pass --data-seed {other[0]} to train on "
+                         f"them, or another --data to generate the seed-{seed} benchmark")
+
+
 def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str, progress: bool = True) -> Path:
-    """data_dir/<size>/<split>, generated (resumably) if it holds no finished bag."""
+    """data_dir/<size>/<split>, generated (resumably) with benchmark seed `seed` if it holds no finished bag
+    (run checks first, with check_data_seed, that bags there were generated with that seed)."""
     from ad_sim.generate import main as generate
 
     folder = data_dir / size / split
@@ -67,7 +94,12 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
         per_size = ", ".join(f"{epochs[i]} for {size}" for size, epochs in EPOCHS.items())
         p.add_argument(f"--{stage}-epochs", type=positive, help=f"{stage} epochs (default: {per_size})")
     p.add_argument("--val-fraction", type=fraction, default=0.1, help="instances held out for validation")
-    p.add_argument("--seed", type=seed, default=0)
+    p.add_argument("--seed", type=seed, default=0,
+                   help="seed of training (initialisation, validation split, batches) and, unless --data-seed, of "
+                        "the benchmark bags generated")
+    p.add_argument("--data-seed", type=seed,
+                   help="benchmark seed of the bags (ad_sim.generate --seed; default: --seed): bags found under "
+                        "--data that were generated with another one are refused, not used")
     p.add_argument("--device", type=torch_device_or_auto, default="auto", help="auto | cpu | cuda | cuda:<index>")
     p.add_argument("--threads", type=count, default=0, help="torch CPU threads (0: default)")
     p.add_argument("--install", help="copy the `full` student (without one in --ablations, the last trained) here "
@@ -85,7 +117,12 @@ def run(args) -> dict:
     teacher_epochs = args.teacher_epochs or EPOCHS[args.size][0]
     student_epochs = args.student_epochs or EPOCHS[args.size][1]
     teacher_batch, student_batch = BATCH[args.size]
-    bags = {s: ensure_bags(Path(args.data), args.size, s, args.seed, args.device, not args.no_progress)
+    data_seed = args.seed if args.data_seed is None else args.data_seed
+    # Bags of another seed would be used as they are, so the same command would train on other data depending
+    # on what an earlier run left in --data. All splits are checked before any is generated.
+    for split in SPLITS:
+        check_data_seed(Path(args.data) / args.size / split, data_seed)
+    bags = {s: ensure_bags(Path(args.data), args.size, s, data_seed, args.device, not args.no_progress)
             for s in SPLITS}
     timings = {"generate_s": time.time() - started}
 
@@ -94,7 +131,8 @@ def run(args) -> dict:
                                             epochs=teacher_epochs, batch_size=teacher_batch))
     timings["teacher_s"] = time.time() - t
 
-    summary = {"size": args.size, "seed": args.seed, "teacher": str(teacher), "teacher_metrics": {}, "students": {}}
+    summary = {"size": args.size, "seed": args.seed, "data_seed": data_seed, "teacher": str(teacher),
+               "teacher_metrics": {}, "students": {}}
     device = init_runtime(args.device).device
     model = train_teacher.load_teacher(teacher, device)
     for split in ("seen", "unseen"):

@@ -13,6 +13,7 @@ frames observed). Needs no ROS runtime.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import warnings
@@ -79,6 +80,24 @@ class Evaluation:
         return "; ".join(parts)
 
 
+def bag_folders(root: Path) -> list[Path]:
+    """The folders under `root` that hold .mcap files, sorted, as Path.rglob finds them, but also through
+    links to folders, which rglob does not enter: a bag folder that was a link (say, a shard on another disk)
+    was left out without a word, and with it its episodes from the training set and its split. A folder
+    reached again (a link to a folder already searched, a link loop) is searched once."""
+    found, searched = set(), set()
+    for folder, subfolders, files in os.walk(root, followlinks=True):
+        subfolders.sort()  # depth first in sorted order: a folder is first reached by its first name in sorted order
+        real = os.path.realpath(folder)
+        if real in searched:
+            subfolders.clear()
+            continue
+        searched.add(real)
+        if any(name.endswith(".mcap") for name in files):
+            found.add(Path(folder))
+    return sorted(found)
+
+
 def find_bags(paths: list[Path]) -> list[Path]:
     """Bag folders (or .mcap files) given directly or found below the given folders, each once: a bag
     named twice, or both as a folder and by one of its .mcap files, would be scored twice."""
@@ -89,7 +108,7 @@ def find_bags(paths: list[Path]) -> list[Path]:
         if path.is_file() or (path / "metadata.yaml").is_file() or any(path.glob("*.mcap")):
             bags.append(path)
             continue
-        found = sorted({p.parent for p in path.rglob("*.mcap")})
+        found = bag_folders(path)
         if not found:
             raise BagError(f"no bag (.mcap files) under {path}")
         bags.extend(found)
