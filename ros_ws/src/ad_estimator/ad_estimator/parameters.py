@@ -11,7 +11,7 @@ from ad_sim import messages
 DEFAULT_INPUT_TOPIC = messages.mask_topic(0)  # the simulator's first camera: what the node reads unless remapped
 MIN_DIAGNOSTICS_PERIOD = 0.01  # s; shorter is a busy loop of /diagnostics
 MAX_THREADS = 256
-MAX_INPUT_DEPTH = 1_000_000  # frames: 40,000 episodes; rclpy itself fails past 2^31 - 1
+MAX_INPUT_DEPTH = 1_000_000  # frames: 40,000 episodes; rclpy itself fails past 2^31 - 1 (queue_size too: memory)
 DEFAULT_IDLE_FLUSH = 0.3  # s; replayed and simulated streams pause > 0.5 s between episodes, frames 0.025 s apart
 # name -> (default, description); every knob of the node is a ROS parameter.
 PARAMETERS = {
@@ -56,7 +56,7 @@ def check_parameters(values: dict) -> None:
     if "diagnostics_period" in values and not MIN_DIAGNOSTICS_PERIOD <= values["diagnostics_period"] <= MAX_SECONDS:
         raise ValueError(f"diagnostics_period is seconds in [{MIN_DIAGNOSTICS_PERIOD:g}, {MAX_SECONDS:g}], got "
                          f"{values['diagnostics_period']}")
-    for name, most in (("threads", MAX_THREADS), ("input_depth", MAX_INPUT_DEPTH)):
+    for name, most in (("threads", MAX_THREADS), ("input_depth", MAX_INPUT_DEPTH), ("queue_size", MAX_INPUT_DEPTH)):
         if name in values and values[name] > most:  # (threads:=100000 took minutes and 16 GB to load the model)
             raise ValueError(f"{name} must be at most {most}, got {values[name]}")
 
