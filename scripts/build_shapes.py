@@ -572,7 +572,15 @@ def verify(shapes_dir: Path = SHAPES_DIR) -> list[str]:
     split_file, catalog_file = shapes_dir / SPLIT_FILE, shapes_dir / CATALOG_FILE
     if not split_file.is_file() or not catalog_file.is_file():
         return [f"missing {SPLIT_FILE} or {CATALOG_FILE} in {shapes_dir}: run `build` first"]
-    split = json.loads(split_file.read_text())
+    try:  # a hand-edited or truncated file is a problem to report, not a traceback
+        split = json.loads(split_file.read_text())
+        catalog = json.loads(catalog_file.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        return [f"{SPLIT_FILE} or {CATALOG_FILE} is not valid JSON: {exc}"]
+    records = catalog.get("shapes") if isinstance(catalog, dict) else None
+    if not isinstance(split, dict) or not isinstance(records, list) or not all(
+            isinstance(r, dict) and {"name", "kind", "split", "source", "file", "sha256"} <= set(r) for r in records):
+        return [f"{CATALOG_FILE} or {SPLIT_FILE} does not have the layout `build` writes: rerun `build`"]
     if split != {"version": SPLIT_VERSION, **SPLIT}:
         problems.append(f"{SPLIT_FILE} differs from SPLIT in this script")
     expected_counts = {("train", "synthetic"): 10, ("train", "everyday"): 20,
@@ -585,7 +593,6 @@ def verify(shapes_dir: Path = SHAPES_DIR) -> list[str]:
                    for n in split.get(part, {}).get(kind, [])]
     if len(split_names) != len(set(split_names)):
         problems.append("a shape appears twice in the split")
-    records = json.loads(catalog_file.read_text())["shapes"]
     by_name = {r["name"]: r for r in records}
     if set(by_name) != set(split_names):
         problems.append(f"catalogue and split disagree: {sorted(set(by_name) ^ set(split_names))}")
@@ -627,6 +634,9 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--shapes-dir", type=Path, default=SHAPES_DIR, help="library folder (default: %(default)s)")
     args = parser.parse_args(argv)
     if args.command == "build":
+        # Before the synthetic shapes are made (the cache is first used after them): was a FileExistsError
+        if args.cache.exists() and not args.cache.is_dir():
+            parser.error(f"--cache: {args.cache} is a file; give a folder for the downloaded packages")
         build(args.cache, args.shapes_dir)
     problems = verify(args.shapes_dir)
     for problem in problems:

@@ -61,12 +61,17 @@ def stamp_ns(stamp) -> int:
 
 
 class Listener:
-    """Collects ground truth and estimates; pairs them by the stamp of the episode's first frame."""
+    """Collects ground truth and estimates; pairs them by the stamp of the episode's first frame.
 
-    def __init__(self, node):
+    At most `limit` rows (--episodes): the simulator plays on until it is stopped, and with real_time_factor 0
+    estimates arrive faster than the main loop looks, so more rows were printed than asked for, some after the
+    summary (and the summary counted them)."""
+
+    def __init__(self, node, limit: int | None = None):
         from ad_msgs.msg import MaterialEstimate, SimInstance
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+        self.limit = limit
         self.instances, self.pending, self.rows = {}, [], []
         self.lock = threading.Lock()
         node.create_subscription(SimInstance, "/ad_sim/instance", self.on_instance,
@@ -87,6 +92,8 @@ class Listener:
 
     def _pair(self):
         for estimate in list(self.pending):
+            if self.limit is not None and len(self.rows) >= self.limit:
+                return
             instance = self.instances.get(stamp_ns(estimate.oldest_stamp))
             if instance is not None:
                 self.pending.remove(estimate)
@@ -161,7 +168,7 @@ def main(argv=None) -> int:
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     node = rclpy.create_node("ad_demo")
-    listener = Listener(node)
+    listener = Listener(node, args.episodes)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)

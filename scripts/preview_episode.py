@@ -53,10 +53,9 @@ def one_line(error: ValueError) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    source = parser.add_mutually_exclusive_group()
-    source.add_argument("--instances", type=Path, help="instance file (YAML/JSON); default: a benchmark split")
-    parser.add_argument("--size", default="tiny", choices=sorted(BENCHMARK_SIZES), help="benchmark size (default tiny)")
-    parser.add_argument("--split", default="unseen", choices=BENCHMARK_SPLITS, help="benchmark split (default unseen)")
+    parser.add_argument("--instances", type=Path, help="instance file (YAML/JSON); default: a benchmark split")
+    parser.add_argument("--size", choices=sorted(BENCHMARK_SIZES), help="benchmark size (default tiny)")
+    parser.add_argument("--split", choices=BENCHMARK_SPLITS, help="benchmark split (default unseen)")
     parser.add_argument("--index", type=int, default=0, help="which instance of the list (default 0)")
     parser.add_argument("--views", type=positive, help="number of views (default: the instance's)")
     parser.add_argument("--full", action="store_true", help="show the 512x512 masks instead of the 128x128 ones")
@@ -65,6 +64,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     # Everything that can be wrong with the arguments, before the simulation (each one line, exit 2).
+    if args.instances and (args.size or args.split):  # was: silently ignored, previewing the file's instance
+        parser.error("--size/--split choose a benchmark split; give them or --instances, not both")
+    args.size, args.split = args.size or "tiny", args.split or "unseen"
     if args.output.is_dir():
         parser.error(f"-o/--output: {args.output} is a folder; give a file name, e.g. {args.output / 'episode.png'}")
     if not cv2.haveImageWriter(str(args.output)):

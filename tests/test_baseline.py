@@ -79,6 +79,7 @@ def test_cli_fits_episodes_read_from_a_bag_and_writes_the_report(tmp_path, capsy
     assert result["psnr"]["families"]["sand"] == pytest.approx(fit["psnr"])
     printed = capsys.readouterr().out
     assert "| sand Acc |" in printed and "re-simulation PSNR" in printed
+    assert "1 x 2 + 1 simulations each" in printed  # the start point is simulated too (evaluations == 3)
 
 
 def test_registered_as_a_training_subcommand_with_help(capsys):
@@ -109,3 +110,83 @@ def test_an_out_that_cannot_be_written_is_refused_before_any_work(tmp_path, caps
             line = capsys.readouterr().err.splitlines()[-1]
             assert line.startswith("python -m training baseline: ") and expected in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "folder"] and not any((tmp_path / "folder").iterdir())
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--generations", "0"], "argument --generations: expected a whole number >= 1, got '0'"),
+    (["--popsize", "1"], "argument --popsize: expected a whole number >= 2, got '1'"),
+    (["--parallel", "0"], "argument --parallel: expected a whole number >= 1, got '0'"),
+    (["--sigma0", "0"], "argument --sigma0: expected a number > 0, got '0'"),
+    (["--sigma0", "nan"], "argument --sigma0: expected a number > 0, got 'nan'"),
+    (["--instances", "-2"], "argument --instances: expected a whole number >= 0, got '-2'"),
+])
+def test_a_bad_search_setting_is_refused_before_the_observed_videos_are_simulated(tmp_path, capsys, monkeypatch,
+                                                                                   argv, expected):
+    """--generations 0 (or --popsize 1, --parallel 0) failed in fit_instances only after the observed videos of the
+    whole subset were simulated (minutes at paper size); --sigma0 0 failed inside cma, --instances -2 fitted all."""
+    from training.__main__ import main
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the work started before the arguments were checked")
+
+    for name in ("observed_from_bags", "resimulate", "fit_instances"):
+        monkeypatch.setattr(baseline, name, no_work)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["baseline", "--size", "tiny", "--out", str(tmp_path / "b.json"), "--no-progress", *argv])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1].endswith(f"error: {expected}")
+
+
+def _fake_simulations(monkeypatch, loss_of):
+    """resimulate/mask_mse stand-ins (no Warp): a candidate's loss is loss_of(its SI parameters)."""
+    batches = []
+
+    def resimulate(instances, candidates, device, view, frame_count):
+        batches.append(candidates)
+        return np.zeros((len(candidates), frame_count, 2, 2), np.uint8)
+
+    def mask_mse(masks, observed):
+        return np.array([loss_of(parameters) for _, parameters in batches[-1]], np.float32)
+
+    monkeypatch.setattr(baseline, "resimulate", resimulate)
+    monkeypatch.setattr(baseline, "mask_mse", mask_mse)
+    return batches
+
+
+JELLY = next(i for i in benchmark("tiny", "unseen") if i.material == "jelly")
+
+
+def test_a_candidate_whose_simulation_failed_counts_as_the_worst(monkeypatch):
+    """A NaN loss (a failed simulation) was picked by np.argmin as the generation's best, so the finite losses
+    of that generation were never considered (and cma took the NaN for the median)."""
+    start = baseline.from_unit("jelly", [0.5, 0.5])
+
+    def loss_of(parameters):  # the start point and every candidate softer than it "went unstable"
+        if parameters["youngs_modulus"] <= start["youngs_modulus"] * (1 + 1e-9):
+            return math.nan
+        return abs(math.log(parameters["youngs_modulus"] / 4e5)) + abs(parameters["poissons_ratio"] - 0.3)
+
+    batches = _fake_simulations(monkeypatch, loss_of)
+    fit, = baseline.fit_instances([JELLY], np.zeros((1, 3, 2, 2), np.uint8), generations=3, popsize=6, progress=False)
+    first = [loss_of(p) for _, p in batches[0]]
+    assert math.isnan(fit.initial_loss) and not all(math.isnan(v) for v in first)
+    assert fit.history[0] == pytest.approx(np.nanmin(first))  # was inf: the NaN start point "won"
+    all_losses = [loss_of(p) for batch in batches for _, p in batch]
+    assert fit.loss == pytest.approx(np.nanmin(all_losses)) and fit.loss == pytest.approx(loss_of(fit.parameters))
+
+
+def test_an_instance_without_any_finite_loss_is_named(monkeypatch):
+    _fake_simulations(monkeypatch, lambda parameters: math.nan)
+    with pytest.raises(ValueError, match=f"{JELLY.episode_id}: no candidate simulation gave a finite mask loss"):
+        baseline.fit_instances([JELLY], np.zeros((1, 3, 2, 2), np.uint8), generations=1, popsize=2, progress=False)
+
+
+def test_observed_videos_with_nan_are_refused_before_the_search(monkeypatch):
+    """A NaN in a float observed video passes mask_mse's [0, 1] check and made every loss NaN."""
+    batches = []
+    monkeypatch.setattr(baseline, "resimulate", lambda *a, **k: batches.append(a) or np.zeros((3, 3, 2, 2), np.uint8))
+    observed = np.zeros((1, 3, 2, 2), np.float32)
+    observed[0, 1, 0, 0] = np.nan
+    with pytest.raises(ValueError, match=r"finite and in \[0, 1\]"):
+        baseline.fit_instances([JELLY], observed, generations=1, popsize=2, progress=False)
+    assert batches == []

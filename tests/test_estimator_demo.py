@@ -75,3 +75,46 @@ def test_run_demo_help_answers_without_re_running_setup():
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("usage: ./run_demo.sh") and "--episodes" in result.stdout
     assert "up to date" not in result.stdout + result.stderr  # setup.sh's re-run lines
+
+
+def _demo_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("demo", REPO / "scripts" / "demo.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class _Node:
+    """Takes the Listener's subscriptions; the test calls their callbacks."""
+
+    def __init__(self):
+        self.callbacks = {}
+
+    def create_subscription(self, msg_type, topic, callback, qos):
+        self.callbacks[topic] = callback
+
+
+def test_no_more_rows_than_episodes_asked_for(capsys):
+    """With --real-time-factor 0, estimates arrive faster than the main loop looks: `--episodes 2` printed 3 rows,
+    a summary over 3, then one more row after the summary while the nodes were being stopped."""
+    from ad_msgs.msg import MaterialEstimate, SimInstance
+
+    demo = _demo_module()
+    node = _Node()
+    listener = demo.Listener(node, 2)
+    for k in range(4):
+        instance = SimInstance(episode_id=f"unseen-box-sand-000{k}", shape="box", material="sand",
+                               parameter_names=["friction_angle"], parameters=[0.5])
+        instance.header.stamp.sec = 10 + k
+        node.callbacks["/ad_sim/instance"](instance)
+        estimate = MaterialEstimate(material="sand", class_names=["jelly", "plasticine", "sand"],
+                                    class_probabilities=[0.0, 0.0, 1.0], parameter_names=["friction_angle"],
+                                    parameters=[0.4], parameter_uncertainties=[0.1], frames_used=25)
+        estimate.oldest_stamp.sec = 10 + k
+        node.callbacks["/ad_estimator/estimate"](estimate)
+    assert [i.episode_id for i, _ in listener.rows] == ["unseen-box-sand-0000", "unseen-box-sand-0001"]
+    printed = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
+    assert printed == [i.episode_id for i, _ in listener.rows]
+    assert demo.summary(listener.rows).startswith("accuracy 2/2;")

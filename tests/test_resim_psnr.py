@@ -159,3 +159,41 @@ def test_psnr_is_ten_log10_of_one_over_the_mask_mse_and_summarised_per_true_fami
     assert summary["mean"] == pytest.approx(50.0) and summary["median"] == 30.0 and summary["exact"] == 1
     assert summary["families"]["sand"] == pytest.approx(60.0) and summary["families"]["jelly"] == 30.0
     assert np.isnan(summary["families"]["plasticine"])
+
+
+@pytest.mark.parametrize("key, value, expected", [
+    ("ad.class_names", ["sand", "jelly", "plasticine"], "differ from"),
+    ("ad.parameter_names", ["youngs_modulus", "poissons_ratio", "yield_stress", "friction"],
+     "lacks ['friction_angle']"),
+])
+def test_a_model_whose_classes_or_parameters_the_metrics_cannot_read_is_refused(tmp_path, capsys, monkeypatch, key,
+                                                                                  value, expected):
+    """As `evaluate` refuses it: the probabilities were read in FAMILIES order, so a model listing its classes in
+    another order was scored and re-simulated as the wrong family (and one lacking a parameter failed after
+    the bags were decoded, with "'friction_angle' is not in list")."""
+    import onnx
+
+    from training.__main__ import main
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the bags were read before the model was checked")
+
+    monkeypatch.setattr(resim_psnr, "selected_episodes", no_work)
+    model_file = build_clip_model(tmp_path / "student.onnx", seed=3)
+    model = onnx.load(str(model_file))
+    next(p for p in model.metadata_props if p.key == key).value = json.dumps(value)
+    if key == "ad.parameter_names":
+        ranges = next(p for p in model.metadata_props if p.key == "ad.parameter_ranges")
+        ranges.value = ranges.value.replace('"friction_angle"', '"friction"')
+    onnx.save(model, str(model_file))
+    assert main(["resim-psnr", "--model", str(model_file), "--bags", str(SAMPLE_BAG), "--out",
+                 str(tmp_path / "r.json"), "--no-progress"]) == 1
+    line = capsys.readouterr().err.splitlines()[-1]
+    assert line.startswith(f"python -m training resim-psnr: {model_file}: ") and expected in line, line
+
+
+def test_a_negative_subset_size_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        resim_psnr.build_parser().parse_args(["--model", "m.onnx", "--bags", str(tmp_path), "--instances", "-3"])
+    assert exit_info.value.code == 2  # was: every episode, as for 0
+    assert "argument --instances: expected a whole number >= 0, got '-3'" in capsys.readouterr().err

@@ -33,6 +33,10 @@ PREVIEW_CASES = [
     (["-o", "{tmp}/notes.txt/sheet.png"], "-o/--output: {tmp}/notes.txt is a file, not a folder"),
     (["--views", "-2"], "argument --views: expected a whole number >= 1, got '-2'"),
     (["--views", "0"], "argument --views: expected a whole number >= 1, got '0'"),
+    (["--instances", "{tmp}/bad.yaml", "--split", "train"],
+     "--size/--split choose a benchmark split; give them or --instances, not both"),
+    (["--size", "small", "--instances", "{tmp}/bad.yaml"],
+     "--size/--split choose a benchmark split; give them or --instances, not both"),
 ]
 if not wp.is_cuda_available():  # was Warp's RuntimeError once the simulation started
     PREVIEW_CASES += [(["--device", "cuda"], "--device: Warp device 'cuda' is not available: no CUDA GPU or driver")]
@@ -129,3 +133,38 @@ def test_gpu_ddp_check_needs_two_gpus(tmp_path, fake, found):
     assert result.returncode == 1
     assert result.stderr == f"gpu_ddp_check.sh: needs 2 or more GPUs, found {found}\n"
     assert not (tmp_path / "work").exists()
+
+
+def build_shapes():
+    import sys
+
+    spec = importlib.util.spec_from_file_location("build_shapes", SCRIPTS / "build_shapes.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["build_shapes"] = module  # its dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("catalog, expected", [
+    ('{"version": 1, "shapes": [', "catalog.json is not valid JSON: Expecting value"),  # was JSONDecodeError
+    ('{"version": 1}', "does not have the layout `build` writes"),  # was KeyError: 'shapes'
+])
+def test_build_shapes_verify_reports_a_broken_catalogue(tmp_path, capsys, catalog, expected):
+    module = build_shapes()
+    shutil.copytree(module.SHAPES_DIR, tmp_path / "shapes")
+    assert module.main(["verify", "--shapes-dir", str(tmp_path / "shapes")]) == 0
+    (tmp_path / "shapes" / module.CATALOG_FILE).write_text(catalog)
+    assert module.main(["verify", "--shapes-dir", str(tmp_path / "shapes")]) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("verify: ") and expected in line, line
+
+
+def test_build_shapes_refuses_a_cache_that_is_a_file_before_building(tmp_path, capsys, monkeypatch):
+    module = build_shapes()
+    monkeypatch.setattr(module, "build", lambda *a: pytest.fail("built before --cache was checked"))
+    (tmp_path / "cache").write_text("")
+    with pytest.raises(SystemExit) as exit_info:
+        module.main(["build", "--cache", str(tmp_path / "cache"), "--shapes-dir", str(tmp_path / "shapes")])
+    assert exit_info.value.code == 2  # was FileExistsError once the synthetic shapes were made
+    assert capsys.readouterr().err.splitlines()[-1].endswith(
+        f"error: --cache: {tmp_path / 'cache'} is a file; give a folder for the downloaded packages")

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ad_estimator.cli import seed, write_text_staged
+from ad_estimator.cli import count, positive, positive_number, seed, write_text_staged
 from ad_estimator.metrics import Predictions, compute_metrics, format_table, json_text
 from ad_sim import families
 from ad_sim.instances import Instance, benchmark
@@ -73,6 +73,29 @@ def _own_randn(rng: np.random.Generator):
     return lambda rows, columns: rng.standard_normal((rows, columns))
 
 
+# What CMA-ES is told for a candidate whose loss is not a number (a failed simulation): worse than any mask
+# MSE (at most 1 for masks in [0, 1]). cma itself would replace NaN by the generation's median.
+FAILED_LOSS = 2.0
+
+
+def _check_observed(observed: np.ndarray) -> None:
+    """Observed videos: uint8 0/255, or float in [0, 1] and finite (a NaN slips past mask_mse's range check
+    and would make every loss NaN, found only after the whole search)."""
+    observed = np.asarray(observed)
+    if observed.ndim != 4 or not min(observed.shape[1:], default=0):
+        raise ValueError(f"observed videos must be (N, T, H, W) with T, H, W >= 1, got shape {observed.shape}")
+    finite = observed.dtype == np.uint8 or np.all(np.isfinite(observed))
+    if not finite or observed.dtype != np.uint8 and not (observed.min() >= 0 and observed.max() <= 1):
+        raise ValueError("observed float videos must be finite and in [0, 1] (uint8 masks are read as 0/255)")
+
+
+def _popsize(text: str) -> int:
+    """argparse type of --popsize: CMA-ES needs 2 or more candidates per generation."""
+    if not text.isdigit() or int(text) < 2:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 2, got {text!r}")
+    return int(text)
+
+
 def fit_instances(
     instances: list[Instance],
     observed: np.ndarray,
@@ -95,6 +118,8 @@ def fit_instances(
         raise ValueError(f"need one observed video per instance, got {len(observed)} for {len(instances)}")
     if generations < 1 or popsize < 2 or parallel < 1:
         raise ValueError("need generations >= 1, popsize >= 2 and parallel >= 1")
+    if len(instances):
+        _check_observed(observed)
     frame_count = np.shape(observed)[1]
     chunks = [list(range(i, min(i + parallel, len(instances)))) for i in range(0, len(instances), parallel)]
     bar = tqdm(total=len(chunks) * generations, desc="CMA-ES generations", unit="gen", disable=not progress)
@@ -110,7 +135,7 @@ def fit_instances(
                                                   "randn": _own_randn(search_rng(seed, instances[i].episode_id))})
             for i, x0 in zip(chunk, starts)
         ]
-        best = [(math.inf, None)] * len(chunk)  # (loss, unit point) per instance
+        best = [(math.inf, x0) for x0 in starts]  # (loss, unit point) per instance
         initial = [math.nan] * len(chunk)
         histories: list[list[float]] = [[] for _ in chunk]
         for generation in range(generations):
@@ -121,23 +146,28 @@ def fit_instances(
             flat = [u for p in points for u in p]
             candidates = [(families[k], from_unit(families[k], u)) for k, u in zip(owners, flat)]
             masks = resimulate([instances[chunk[k]] for k in owners], candidates, device, FIT_VIEW, frame_count)
-            losses = mask_mse(masks, observed[[chunk[k] for k in owners]])
+            losses = np.asarray(mask_mse(masks, observed[[chunk[k] for k in owners]]), dtype=np.float64)
             offset = 0
             for k, es in enumerate(strategies):
                 own = losses[offset : offset + len(points[k])]
                 offset += len(points[k])
                 if generation == 0:
                     initial[k] = float(own[0])
+                # A failed candidate (NaN or infinite loss) is the worst of all: np.argmin would pick a NaN,
+                # hiding the generation's best, and cma would take it for the generation's median.
+                own = np.where(np.isfinite(own), own, np.inf)
                 j = int(np.argmin(own))
                 if own[j] < best[k][0]:
                     best[k] = (float(own[j]), np.asarray(points[k][j]))
-                es.tell(asked[k], list(own[-len(asked[k]) :]))
+                es.tell(asked[k], list(np.minimum(own[-len(asked[k]) :], FAILED_LOSS)))
                 histories[k].append(best[k][0])
             bar.update()
             bar.set_postfix(mean_best_mse=f"{np.mean([b for b, _ in best]):.2e}")
         seconds = (time.perf_counter() - start) / len(chunk)
         for k, i in enumerate(chunk):
             loss, unit = best[k]
+            if not math.isfinite(loss):
+                raise ValueError(f"{instances[i].episode_id}: no candidate simulation gave a finite mask loss")
             unit = unit[: len(SAMPLED_PARAMETERS[families[k]])]
             fits.append(Fit(instances[i].episode_id, families[k], from_unit(families[k], unit), unit.tolist(), loss,
                             initial[k], histories[k], generations * popsize + 1, seconds))
@@ -180,12 +210,15 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--size", default="small", choices=("tiny", "small", "paper"), help="benchmark size (no --bags)")
     p.add_argument("--split", default="unseen", choices=("train", "seen", "unseen"), help="benchmark split (no --bags)")
     p.add_argument("--bags", help="read instances and observed videos from these bags instead of simulating them")
-    p.add_argument("--instances", type=int, default=16,
+    # Checked here, before the observed videos are simulated (minutes for a paper-size subset), not by
+    # fit_instances after them.
+    p.add_argument("--instances", type=count, default=16,
                    help="fit a seeded random subset of this many instances (0: all of them)")
-    p.add_argument("--generations", type=int, default=10, help="CMA-ES generations per instance")
-    p.add_argument("--popsize", type=int, default=16, help="CMA-ES candidates per generation")
-    p.add_argument("--sigma0", type=float, default=0.3, help="initial CMA-ES step size in the normalised [0, 1]^d")
-    p.add_argument("--parallel", type=int, default=16,
+    p.add_argument("--generations", type=positive, default=10, help="CMA-ES generations per instance")
+    p.add_argument("--popsize", type=_popsize, default=16, help="CMA-ES candidates per generation (>= 2)")
+    p.add_argument("--sigma0", type=positive_number, default=0.3,
+                   help="initial CMA-ES step size in the normalised [0, 1]^d")
+    p.add_argument("--parallel", type=positive, default=16,
                    help="instances optimised together; one simulation batch = parallel x popsize scenes")
     p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N")
     p.add_argument("--seed", type=seed, default=0, help="seeds the subset and every instance's CMA-ES")
@@ -220,6 +253,6 @@ def run(args) -> dict:
     print(format_table({str(observed.shape[1]): result["metrics"]}, f"per-scene CMA-ES baseline on {name}"))
     print(format_psnr(result["psnr"], len(fits)))
     print(f"{result['seconds_per_instance']:.2f} s per instance ({len(fits)} instances, {args.generations} x "
-          f"{args.popsize} simulations each, {min(args.parallel, len(fits))} optimised together on {args.device}); "
+          f"{args.popsize} + 1 simulations each, {min(args.parallel, len(fits))} optimised together on {args.device}); "
           f"wrote {out}")
     return result

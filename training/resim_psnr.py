@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ad_estimator.cli import seed, write_text_staged
+from ad_estimator.cli import count, seed, write_text_staged
 from ad_estimator.metrics import json_text
 from ad_sim.instances import Instance
 from ad_sim.materials import FAMILIES, FRAME_COUNT, SAMPLED_PARAMETERS, full_parameters
@@ -108,10 +108,11 @@ def model_psnr(model_path: str | Path, bags: str | Path, device: str = "cpu", co
                progress: bool = True) -> dict:
     """Metrics and per-episode re-simulation PSNR of a student's estimates on (a subset of) the bags."""
     from ad_estimator import metrics
-    from ad_estimator.evaluate import predict_episode, to_metrics
+    from ad_estimator.evaluate import check_scorable, predict_episode, to_metrics
     from ad_estimator.model import EstimatorModel
 
     model = EstimatorModel.load(model_path)
+    check_scorable(model)  # as evaluate does: FAMILIES[c] below reads the classes in that order
     episodes = selected_episodes(bags, count, seed)
     # The frames converted as the model reads them (a coverage model keeps grey levels); the PSNR
     # compares binary masks, as re-simulation renders them.
@@ -151,7 +152,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
                      "compared with the recorded ones. Writes a JSON with the metrics table and per-episode PSNR.")
     p.add_argument("--model", required=True, help="exported student .onnx (for streaming: the temporal head file)")
     p.add_argument("--bags", required=True, help="evaluation bags (a bag folder or a folder of bags)")
-    p.add_argument("--instances", type=int, default=0, help="a seeded random subset of this many episodes (0: all)")
+    p.add_argument("--instances", type=count, default=0, help="a seeded random subset of this many episodes (0: all)")
     p.add_argument("--seed", type=seed, default=0, help="seeds the subset")
     p.add_argument("--device", default="cpu", help="Warp device for the re-simulation: cpu, cuda, cuda:N")
     p.add_argument("--out", help="output JSON (default runs/resim_psnr/<model id>-<bags name>.json)")

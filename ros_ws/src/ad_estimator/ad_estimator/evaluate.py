@@ -205,13 +205,20 @@ def stamp_text(stamp_ns: int | None) -> str:
     return "(malformed)" if stamp_ns is None else f"{stamp_ns / 1e9:.3f} s"
 
 
-def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], mask_topic: str = MASK_TOPIC,
-             progress: bool = True, recover: bool = False) -> Evaluation:
-    """Predictions per number of observed frames, every episode of every bag (see score_episode)."""
+def check_scorable(model: EstimatorModel) -> None:
+    """ModelError unless the metrics can read the model's outputs: its probabilities in FAMILIES order, and
+    every parameter they score by name (a model with its classes in another order would be scored, and
+    re-simulated, as the wrong family)."""
     if model.info.class_names != tuple(metrics.FAMILIES):
         raise ModelError(f"{model.info.path}: classes {model.info.class_names} differ from {metrics.FAMILIES}")
     if missing := [n for n in metrics.PARAMETER_NAMES if n not in model.info.parameter_names]:
         raise ModelError(f"{model.info.path}: ad.parameter_names lacks {missing}, which the metrics need")
+
+
+def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], mask_topic: str = MASK_TOPIC,
+             progress: bool = True, recover: bool = False) -> Evaluation:
+    """Predictions per number of observed frames, every episode of every bag (see score_episode)."""
+    check_scorable(model)
     result = Evaluation({k: [] for k in frame_counts}, left_out={k: [] for k in frame_counts})
     with tqdm(desc="episodes", unit="ep", disable=not progress, file=sys.stderr) as bar:
         for bag in bags:
