@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import random
 import shutil
 import signal
 import sys
@@ -24,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "tests"), str(ROOT / "ros_ws" / "src" / "ad_sim"),
                 str(ROOT / "ros_ws" / "src" / "ad_estimator")]  # tests: its ROS process helpers
 
-from ros_procs import DOMAIN_COUNT, DOMAIN_LOCK_DIR, hold_domain, recorder_counts, start, stop  # noqa: E402
+from ros_procs import recorder_counts, ros_domain, start, stop  # noqa: E402
 from sim_fixtures import fabricated_episode  # noqa: E402
 
 from ad_sim import messages  # noqa: E402
@@ -33,25 +32,8 @@ from ad_sim.rosbag import BagReader, BagWriter  # noqa: E402
 from ad_estimator.cli import positive  # noqa: E402
 
 
-MAX_DOMAIN_ID = 232  # the largest ROS domain whose DDS ports fit (Fast DDS, default port mapping)
-_held_domains = []  # the lock files of the domains this process took: held until it exits
 
 
-def ros_domain(parser: argparse.ArgumentParser) -> int:
-    """The caller's ROS_DOMAIN_ID if set (shared machines give each user one), else one of 1..100 that no test or
-    benchmark on this machine holds (ros_procs.hold_domain), held from now on; parser.error (one line, exit 2)
-    for one that is not a domain, or when every one is held, before any work."""
-    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
-    if not text:
-        for domain in random.sample(range(1, DOMAIN_COUNT + 1), DOMAIN_COUNT):
-            if (lock := hold_domain(domain)) is not None:
-                _held_domains.append(lock)
-                return domain
-        parser.error(f"all ROS domains 1..{DOMAIN_COUNT} are held by tests or benchmarks on this machine (locks in "
-                     f"{DOMAIN_LOCK_DIR}); set ROS_DOMAIN_ID")
-    if not text.isdigit() or int(text) > MAX_DOMAIN_ID:
-        parser.error(f"ROS_DOMAIN_ID must be a ROS domain, a whole number 0..{MAX_DOMAIN_ID} (e.g. 62), got {text!r}")
-    return int(text)
 
 
 def main(argv=None) -> int:

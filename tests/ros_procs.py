@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import argparse
 import fcntl
 import os
+import random
 import re
 import signal
 import subprocess
@@ -31,6 +33,27 @@ def hold_domain(domain: int):
         lock.close()
         return None
     return lock
+
+
+MAX_DOMAIN_ID = 232  # the largest ROS domain whose DDS ports fit (Fast DDS, default port mapping)
+_held_domains = []  # the lock files of the domains this process took (ros_domain): held until it exits
+
+
+def ros_domain(parser: argparse.ArgumentParser) -> int:
+    """The caller's ROS_DOMAIN_ID if set (shared machines give each user one), else one of 1..100 that no test or
+    benchmark on this machine holds (ros_procs.hold_domain), held from now on; parser.error (one line, exit 2)
+    for one that is not a domain, or when every one is held, before any work."""
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        for domain in random.sample(range(1, DOMAIN_COUNT + 1), DOMAIN_COUNT):
+            if (lock := hold_domain(domain)) is not None:
+                _held_domains.append(lock)
+                return domain
+        parser.error(f"all ROS domains 1..{DOMAIN_COUNT} are held by tests or benchmarks on this machine (locks in "
+                     f"{DOMAIN_LOCK_DIR}); set ROS_DOMAIN_ID")
+    if not text.isdigit() or int(text) > MAX_DOMAIN_ID:
+        parser.error(f"ROS_DOMAIN_ID must be a ROS domain, a whole number 0..{MAX_DOMAIN_ID} (e.g. 62), got {text!r}")
+    return int(text)
 
 
 def start(executable: str, domain: int, log: Path, **params) -> subprocess.Popen:

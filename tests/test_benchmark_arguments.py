@@ -64,6 +64,18 @@ CASES = [
     ("mpm_device_check", ["--output", "{tmp}/missing/x.npz", "--scenes", "1", "--frames", "2"],
      "argument --output: the folder {tmp}/missing does not exist"),
     ("mpm_device_check", ["--output", "{tmp}"], "argument --output: {tmp} is a folder; give a file name, e.g. {tmp}/cpu.npz"),
+    # soak.py runs for minutes to hours: everything is checked before the node starts.
+    ("soak", ["--minutes", "0"], "argument --minutes: expected a number > 0, got '0'"),
+    ("soak", ["--interval", "nan"], "argument --interval: expected a number > 0, got 'nan'"),
+    ("soak", ["--warmup", "-1"], "argument --warmup: expected a number >= 0, got '-1'"),
+    ("soak", ["--minutes", "1", "--warmup", "55"], "--warmup 55 s leaves under two --interval (5 s) samples of a 60 s run"),
+    ("soak", ["--minutes", "2", "--latency-window", "90"], "--latency-window 90 s is longer than the run after warm-up"),
+    # Faster, the bag's 0.9 s pauses between episodes fall under the node's idle flush: not the node robots run.
+    ("soak", ["--rate", "3"], "--rate 3: the bag's 0.9 s pauses between episodes would last 0.3 s, not longer than "
+                              "the node's idle_flush (0.3 s); use --rate below 3"),
+    ("soak", ["--bag", "{tmp}"], "--bag: bag folder {tmp} holds no .mcap file"),
+    ("soak", ["--json", "{tmp}"], "{tmp} is a folder; give a file name, e.g. {tmp}/figures.json"),
+    ("soak", ["--model", "{tmp}/missing.onnx"], "model file not found: {tmp}/missing.onnx"),
 ]
 if not wp.is_cuda_available():  # a Warp device this machine lacks, before any simulation
     CASES += [(name, ["--device", "cuda"], "Warp device 'cuda' is not available: no CUDA GPU or driver")
@@ -165,25 +177,27 @@ def test_record_throughput_refuses_a_bad_ros_domain_id_before_any_work(tmp_path)
     assert "Traceback" not in result.stderr and os.listdir(tmp_path) == []  # no work folder made
 
 
-def test_record_throughput_takes_a_free_domain_of_1_to_100_when_none_is_set(monkeypatch, tmp_path):
+def test_the_ros_benchmarks_take_a_free_domain_of_1_to_100_when_none_is_set(monkeypatch, tmp_path):
     """As tests/conftest.py does (domains past 101 are not valid for DDS on Linux with many participants), and one
-    that no test or benchmark on this machine holds: it could cross-talk with a test run's nodes."""
+    that no test or benchmark on this machine holds: it could cross-talk with a test run's nodes. record_throughput
+    and soak take it from ros_procs.ros_domain."""
     import argparse
 
     import ros_procs
 
+    assert script("record_throughput").ros_domain is script("soak").ros_domain is ros_procs.ros_domain
     monkeypatch.setattr(ros_procs, "DOMAIN_LOCK_DIR", tmp_path)  # this test's own set of locks
-    module = script("record_throughput")
+    monkeypatch.setattr(ros_procs, "_held_domains", [])
     monkeypatch.delenv("ROS_DOMAIN_ID", raising=False)
     held = [ros_procs.hold_domain(d) for d in range(1, 100)]  # all but 100, as other processes would
-    assert module.ros_domain(argparse.ArgumentParser()) == 100
+    assert ros_procs.ros_domain(argparse.ArgumentParser()) == 100
     assert ros_procs.hold_domain(100) is None  # and it holds it now
     with pytest.raises(SystemExit):
-        module.ros_domain(argparse.ArgumentParser())  # none left: one line, exit 2
-    for lock in held + module._held_domains:
+        ros_procs.ros_domain(argparse.ArgumentParser())  # none left: one line, exit 2
+    for lock in held + ros_procs._held_domains:
         lock.close()
     monkeypatch.setenv("ROS_DOMAIN_ID", "62")
-    assert module.ros_domain(argparse.ArgumentParser()) == 62
+    assert ros_procs.ros_domain(argparse.ArgumentParser()) == 62
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in BENCHMARKS.glob("*.py") if p.stem != "common"))
