@@ -21,6 +21,17 @@ def random_domain() -> int:
     return random.Random(os.getpid() ^ time.time_ns()).randrange(101, 230)
 
 
+_estimators: list = []  # EstimatorNodes started in the current ros_context: destroyed when it ends
+
+
+def tracked(node):
+    """`node` (an EstimatorNode), destroyed when the ros_context ends. Else its worker thread outlives the test
+    and, flushing its idle window into the shut-down context later (idle_flush), logs errors in the middle of
+    other tests: once it left a later test's log line missing."""
+    _estimators.append(node)
+    return node
+
+
 @contextmanager
 def ros_context(domain: int | None = None):
     """rclpy context on a random domain (parallel test runs on this machine do not see each other)
@@ -33,6 +44,12 @@ def ros_context(domain: int | None = None):
     try:
         yield context, executor
     finally:
+        while _estimators:
+            node = _estimators.pop()
+            try:
+                node.destroy_node()
+            except Exception:  # noqa: BLE001 - a test destroyed it already
+                pass
         rclpy.try_shutdown(context=context)
         spinner.join(timeout=5.0)
         executor.shutdown(timeout_sec=2.0)

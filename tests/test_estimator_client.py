@@ -20,7 +20,7 @@ import ad_estimator.node as estimator_node
 from ad_estimator.model import BUNDLED_MODEL
 from ad_estimator.node import MAX_CLIP_FRAMES, EstimatorNode
 from estimator_models import build_streaming_model, falling_masks
-from estimator_ros import image_msg, ros_context, wait_for
+from estimator_ros import image_msg, ros_context, tracked, wait_for
 
 pytestmark = pytest.mark.ros
 DT = 25_000_000
@@ -54,7 +54,8 @@ def start(ros, model_path=BUNDLED_MODEL, **params):
     context, executor = ros
     params = {"reliable": True, "input_depth": 100, "idle_flush": 30.0, **params}
     overrides = [Parameter("model_path", value=str(model_path))] + [Parameter(k, value=v) for k, v in params.items()]
-    node = EstimatorNode(context=context, parameter_overrides=overrides, cli_args=["--ros-args", "-r", f"mask:={TOPIC}"])
+    node = tracked(EstimatorNode(context=context, parameter_overrides=overrides,
+                                 cli_args=["--ros-args", "-r", f"mask:={TOPIC}"]))
     planner, camera = Node("planner", context=context), Node("camera", context=context)
     estimates = []
     planner.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append, 10)

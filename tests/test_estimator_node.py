@@ -29,7 +29,7 @@ from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS
 from ad_estimator.window import FrameWindow
 from ad_sim.rosbag import BagReader
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
-from estimator_ros import image_msg, ros_context, spin_until_shutdown, wait_for
+from estimator_ros import image_msg, ros_context, spin_until_shutdown, tracked, wait_for
 from sim_fixtures import write_coverage_bag
 
 pytestmark = pytest.mark.ros
@@ -57,8 +57,8 @@ def start(ros, model_path, remap=f"mask:={TOPIC}", node_executor=None, **params)
     params = {"reliable": True, "input_depth": 100, "idle_flush": 30.0, **params}
     overrides = [Parameter("model_path", value=str(model_path))]
     overrides += [Parameter(k, value=v) for k, v in params.items()]
-    node = EstimatorNode(context=context, parameter_overrides=overrides,
-                         cli_args=["--ros-args", "-r", remap])
+    node = tracked(EstimatorNode(context=context, parameter_overrides=overrides,
+                                 cli_args=["--ros-args", "-r", remap]))
     client = Node("estimator_test_client", context=context)
     estimates = []
     client.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append, 10)
