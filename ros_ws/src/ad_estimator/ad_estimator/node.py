@@ -55,12 +55,6 @@ def to_time(ns: int) -> Time:
     return Time(sec=sec, nanosec=nanosec)
 
 
-def stamp_text(ns: int) -> str:
-    """A stamp as sec.nanosec, exactly (a float of ns since 1970 rounds them)."""
-    sec, nanosec = ns_to_stamp(ns)
-    return f"{sec}.{nanosec:09d}"
-
-
 def estimate_message(estimate: Estimate, window: WindowOutput, frame_id: str, model_id: str,
                      inference_time: float) -> MaterialEstimate:
     msg = MaterialEstimate()
@@ -385,13 +379,7 @@ class EstimatorNode(Node):
                 # a stream would restart its window here; a clip is one episode of one camera
                 raise ValueError(f"frame {i}: {frame.width}x{frame.height}, frame 0: {frames[0].width}x"
                                  f"{frames[0].height}; clip frames must all have the same size")
-        unstamped = len(stamps) > 1 and len(set(stamps)) == 1
-        for i in range(1, len(stamps) if not unstamped else 0):
-            if stamps[i] <= stamps[i - 1]:
-                raise ValueError(f"frame {i}: stamp {stamp_text(stamps[i])} s is not after frame {i - 1}'s "
-                                 f"({stamp_text(stamps[i - 1])} s); clip stamps must be strictly increasing, oldest "
-                                 "first (or all equal: frames on the model's interval)")
-        slot_stamps = clip_stamps(stamps, self.info.frame_interval)
+        slot_stamps = clip_stamps(stamps, self.info.frame_interval)  # ValueError naming the frame out of order
         # Frames past the last slot's reach are used in no slot: the first of them only settles the slots (complete),
         # the rest change nothing. So they are not converted (a long clip whose object leaves the view later still
         # gets its estimate), and the first one is put just past the reach: a stamp days later (a first frame stamped

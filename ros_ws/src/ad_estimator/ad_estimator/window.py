@@ -344,9 +344,18 @@ def clip_stamps(stamps_ns: list[int], frame_interval: float) -> list[int]:
     if len(stamps_ns) > 1 and all(s == stamps_ns[0] for s in stamps_ns):
         step = int(round(frame_interval * 1e9))
         return [stamps_ns[0] + k * step for k in range(len(stamps_ns))]
-    if any(b <= a for a, b in zip(stamps_ns, stamps_ns[1:])):
-        raise ValueError("clip stamps must be strictly increasing (or all equal for frames on the model's interval)")
+    for i in range(1, len(stamps_ns)):
+        if stamps_ns[i] <= stamps_ns[i - 1]:
+            raise ValueError(f"frame {i}: stamp {stamp_text(stamps_ns[i])} s is not after frame {i - 1}'s "
+                             f"({stamp_text(stamps_ns[i - 1])} s); clip stamps must be strictly increasing, oldest "
+                             "first (or all equal: frames on the model's interval)")
     return list(stamps_ns)
+
+
+def stamp_text(ns: int) -> str:
+    """A stamp as sec.nanosec, exactly (a float of ns since 1970 rounds them)."""
+    sec, nanosec = ns_to_stamp(ns)
+    return f"{sec}.{nanosec:09d}"
 
 
 def clip_output(stamps_ns: list[int], masks: list[np.ndarray], encode: Encode,
