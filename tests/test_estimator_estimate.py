@@ -1,8 +1,12 @@
 """`ad_estimator estimate`: the node's estimates for any bag, offline, without ground truth (no ROS runtime)."""
 import csv
+import fcntl
 import json
 import os
+import pty
 import shutil
+import struct
+import termios
 from pathlib import Path
 
 import numpy as np
@@ -438,6 +442,14 @@ def test_a_bag_named_twice_is_read_once(setup, tmp_path):
     assert len(read_csv(tmp_path / "e.csv")) == len(EPISODES)
 
 
+def read_terminal(fd: int) -> bytes:
+    """What a pseudo-terminal has for us; b"" once the process on its other side has closed it (EIO)."""
+    try:
+        return os.read(fd, 4096)
+    except OSError:
+        return b""
+
+
 def test_ctrl_c_is_one_line_and_writes_nothing(setup, tmp_path):
     """A real SIGINT while estimate works through many bags: status 130, one line, no CSV (was a
     KeyboardInterrupt traceback)."""
@@ -447,15 +459,21 @@ def test_ctrl_c_is_one_line_and_writes_nothing(setup, tmp_path):
 
     model, bag = setup
     copies = [str(shutil.copytree(bag, tmp_path / "bags" / f"b{i}")) for i in range(200)]
+    terminal, stderr = pty.openpty()  # progress bars are drawn on a terminal only, one with columns
+    fcntl.ioctl(terminal, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
     proc = subprocess.Popen([sys.executable, "-m", "ad_estimator.estimate", "--model", str(model), *copies,
-                             "--out", str(tmp_path / "e.csv")], stderr=subprocess.PIPE)
+                             "--out", str(tmp_path / "e.csv")], stderr=stderr)
+    os.close(stderr)
     seen = b""
     while b"bags:" not in seen:  # the progress bar: start-up is over, the bags are being read
-        chunk = proc.stderr.read1(4096)
+        chunk = read_terminal(terminal)
         assert chunk, f"estimate ended before reading the bags: {seen!r}"
         seen += chunk
     proc.send_signal(signal.SIGINT)
-    _, rest = proc.communicate(timeout=60)
-    err = (seen + rest).decode()
+    proc.wait(timeout=60)
+    while chunk := read_terminal(terminal):
+        seen += chunk
+    os.close(terminal)
+    err = seen.decode().replace("\r\n", "\n")
     assert proc.returncode == 130 and err.strip().splitlines()[-1] == "estimate: interrupted; nothing was written", err
     assert "Traceback" not in err and not (tmp_path / "e.csv").exists()

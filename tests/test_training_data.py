@@ -1,8 +1,10 @@
 """training.data: real MCAP bags (written by ad_sim's own writer and message code) -> cache."""
 from __future__ import annotations
 
+import io
 import logging
 import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -407,3 +409,15 @@ def test_bag_folders_that_are_links_are_found_once_and_in_order(tmp_path):
     a = data.load_dataset(plain, tmp_path / "cache", progress=False)
     b = data.load_dataset(linked, tmp_path / "cache", progress=False)
     assert len(a) == 3 and b.episode_ids == [a.episode_ids[i] for i in (2, 0, 1)]
+
+
+class Terminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_progress_bars_are_drawn_on_a_terminal_and_not_into_a_redirected_log(bags, tmp_path, monkeypatch):
+    for stderr, drawn in ((Terminal(), True), (io.StringIO(), False)):
+        monkeypatch.setattr(sys, "stderr", stderr)
+        data.load_dataset(bags, tmp_path / f"cache_{drawn}", progress=True)
+        assert ("cache bags" in stderr.getvalue()) == drawn, stderr.getvalue()

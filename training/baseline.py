@@ -122,7 +122,7 @@ def fit_instances(
         _check_observed(observed)
     frame_count = np.shape(observed)[1]
     chunks = [list(range(i, min(i + parallel, len(instances)))) for i in range(0, len(instances), parallel)]
-    bar = tqdm(total=len(chunks) * generations, desc="CMA-ES generations", unit="gen", disable=not progress)
+    bar = tqdm(total=len(chunks) * generations, desc="CMA-ES generations", unit="gen", disable=None if progress else True)
     fits: list[Fit] = []
     for chunk in chunks:
         start = time.perf_counter()

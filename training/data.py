@@ -412,7 +412,7 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True,
     cache_dir = Path(cache_dir)
     shards, problems = [], []
     paths = find_bags(bags)
-    for path in tqdm(paths, desc="cache bags", disable=not progress, unit="bag"):
+    for path in tqdm(paths, desc="cache bags", disable=None if progress else True, unit="bag"):
         folder = cache_dir / (bag_key(path) + ("-coverage" if coverage else ""))
         if folder in shards:  # a copy of a bag already read (its episodes would count twice)
             log.warning("%s holds the same recording as a bag read before (cache %s); read once", path, folder.name)
@@ -490,7 +490,7 @@ def resized_videos(dataset: Dataset, size: tuple[int, int], progress: bool = Tru
         return list(dataset._videos)
     out = []
     for shard in tqdm(dataset.shards, desc=f"resize videos {size[0]}x{size[1]}", unit="bag", leave=False,
-                      disable=not progress):
+                      disable=None if progress else True):
         path = shard / f"videos_{size[0]}x{size[1]}.npy"
         if not path.exists():
             videos = np.load(shard / "videos.npy", mmap_mode="r")

@@ -380,7 +380,7 @@ def fit(model: torch.nn.Module, train_set, val_set, loss_fn: Callable, out_dir: 
             train_set.set_epoch(epoch)
         model.train()
         sums, count = {}, 0
-        bar = tqdm(loader, desc=f"{desc} epoch {epoch + 1}/{cfg.epochs}", disable=not (rt.main and cfg.progress),
+        bar = tqdm(loader, desc=f"{desc} epoch {epoch + 1}/{cfg.epochs}", disable=None if rt.main and cfg.progress else True,
                    leave=False, unit="batch")
         for batch in bar:
             batch = {k: v.to(rt.device, non_blocking=True) for k, v in batch.items()}

@@ -33,7 +33,7 @@ def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORE
     probs = {k: [] for k in frames}
     params = {k: [] for k in frames}
     sigmas = {k: [] for k in frames}
-    for j in tqdm(videos, desc="evaluate", unit="clip", disable=not progress):
+    for j in tqdm(videos, desc="evaluate", unit="clip", disable=None if progress else True):
         video = list(ds.video(int(j)))  # frames on the model's interval, in order
         features = clip_output([0] * len(video), video, model.encode, model.info.frame_interval,
                                model.info.frame_count, history=model.info.previous_frames).features

@@ -116,7 +116,7 @@ def videos_on_device(frames: list[np.ndarray], device: torch.device, progress: b
     total = sum(len(f) for f in frames)
     out = torch.empty((total, *frames[0].shape[1:]), dtype=torch.from_numpy(np.empty(0, frames[0].dtype)).dtype, device=device)
     row = 0
-    for f in tqdm(frames, desc="videos to device", unit="bag", disable=not progress, leave=False):
+    for f in tqdm(frames, desc="videos to device", unit="bag", disable=None if progress else True, leave=False):
         for start in range(0, len(f), 1024):  # bounded host memory per copy
             chunk = np.array(f[start:start + 1024])  # a writable copy: torch warns on read-only memmaps
             out[row:row + len(chunk)] = torch.from_numpy(chunk).to(device)

@@ -56,7 +56,7 @@ class TrajectoriesOnDevice:
                  chunk: int = 256):
         self.trajectories = torch.empty((len(ds), *ds.trajectory(0).shape), dtype=torch.float32, device=device)
         anchors, neighbours = [], []
-        for start in tqdm(range(0, len(ds), chunk), desc="trajectories to device", unit="chunk", disable=not progress,
+        for start in tqdm(range(0, len(ds), chunk), desc="trajectories to device", unit="chunk", disable=None if progress else True,
                           leave=False):
             rows = range(start, min(len(ds), start + chunk))  # bounded host memory per copy
             part = torch.from_numpy(np.stack([ds.trajectory(i) for i in rows])).to(device)

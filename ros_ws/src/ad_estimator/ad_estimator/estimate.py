@@ -210,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     rows, failed, damaged = [], [], False
     # A context manager closes the bar (ending its line) before a Ctrl-C's message is printed.
-    with tqdm(bags, desc="bags", unit="bag", disable=args.quiet) as bar:
+    with tqdm(bags, desc="bags", unit="bag", disable=True if args.quiet else None) as bar:
         for bag in bar:
             try:
                 rows += estimate_bag(model, bag, args.topic, values, args.recover, tally)

@@ -220,7 +220,7 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
     """Predictions per number of observed frames, every episode of every bag (see score_episode)."""
     check_scorable(model)
     result = Evaluation({k: [] for k in frame_counts}, left_out={k: [] for k in frame_counts})
-    with tqdm(desc="episodes", unit="ep", disable=not progress, file=sys.stderr) as bar:
+    with tqdm(desc="episodes", unit="ep", disable=None if progress else True, file=sys.stderr) as bar:
         for bag in bags:
             before = len(result.left_out[frame_counts[0]])
             for instance, frames in episode_frames(bag, mask_topic, recover, result.source_problems):

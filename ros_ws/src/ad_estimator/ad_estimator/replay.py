@@ -117,7 +117,7 @@ class Replayer:
         """Publish every message at first_wall + (log_time - first_log) / rate; returns the count."""
         start_wall = start_log = None
         # closed on an error too (a bag with nothing readable fails once read), so the error gets a line of its own
-        with tqdm(total=self.total, unit="msg", desc="replay", disable=not progress, file=sys.stderr) as bar:
+        with tqdm(total=self.total, unit="msg", desc="replay", disable=None if progress else True, file=sys.stderr) as bar:
             for topic, log_time, data in self.reader:
                 if start_log is None:
                     start_wall, start_log = time.monotonic(), log_time

@@ -236,7 +236,7 @@ def write_shard(
     # Closed also on an error or Ctrl-C: what was written stays readable (the shard, without its marker,
     # is still redone by the next run).
     with BagWriter(folder, max_bag_size=max_bag_size, compression=compression, custom_data=custom_data) as writer, \
-            tqdm(total=len(instances), desc=folder.name, unit="episode", disable=not progress) as bar:
+            tqdm(total=len(instances), desc=folder.name, unit="episode", disable=None if progress else True) as bar:
         for start in range(0, len(instances), batch):
             episodes = simulate_batch(instances[start : start + batch], device=device, views=views,
                                       coverage_masks=coverage_masks)
