@@ -25,9 +25,11 @@ import numpy as np
 from ad_estimator import metrics
 from ad_estimator.cli import non_negative_number, positive, positive_number
 from ad_estimator.window import stamp_to_ns
+from ad_sim.families import FRAME_COUNT, FRAME_INTERVAL
 
 ROOT = Path(__file__).resolve().parents[1]
 ADRUN = ROOT / "scripts" / "adrun"
+EPISODE_SPAN_NS = round(FRAME_COUNT * FRAME_INTERVAL * 1e9)  # from an episode's first frame's stamp to past its last
 SHORT = {"youngs_modulus": ("E", "Pa"), "poissons_ratio": ("nu", ""), "yield_stress": ("yield", "Pa"),
          "friction_angle": ("phi", "deg")}
 
@@ -61,7 +63,8 @@ def stamp_ns(stamp) -> int:
 
 
 class Listener:
-    """Collects ground truth and estimates; pairs them by the stamp of the episode's first frame.
+    """Collects ground truth and estimates; pairs each estimate with the episode whose frames its oldest frame
+    lies among (the instance is stamped with the episode's first frame, which the estimator may not have had).
 
     At most `limit` rows (--episodes): the simulator plays on until it is stopped, and with real_time_factor 0
     estimates arrive faster than the main loop looks, so more rows were printed than asked for, some after the
@@ -90,11 +93,16 @@ class Listener:
             self.pending.append(msg)
             self._pair()
 
+    def episode_of(self, stamp: int):
+        """The instance whose episode's frames span `stamp`, or None (not received yet)."""
+        starts = [start for start in self.instances if start <= stamp < start + EPISODE_SPAN_NS]
+        return self.instances[max(starts)] if starts else None
+
     def _pair(self):
         for estimate in list(self.pending):
             if self.limit is not None and len(self.rows) >= self.limit:
                 return
-            instance = self.instances.get(stamp_ns(estimate.oldest_stamp))
+            instance = self.episode_of(stamp_ns(estimate.oldest_stamp))
             if instance is not None:
                 self.pending.remove(estimate)
                 self.rows.append((instance, estimate))

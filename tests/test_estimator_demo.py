@@ -118,3 +118,29 @@ def test_no_more_rows_than_episodes_asked_for(capsys):
     printed = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
     assert printed == [i.episode_id for i, _ in listener.rows]
     assert demo.summary(listener.rows).startswith("accuracy 2/2;")
+
+
+def test_an_estimate_without_its_episodes_first_frame_is_still_paired(capsys):
+    """The estimator's oldest frame need not be the episode's first (a frame lost on the way): pairing by equal
+    stamps left such an estimate waiting for ever, and the demo reported fewer rows than episodes."""
+    from ad_msgs.msg import MaterialEstimate, SimInstance
+
+    demo = _demo_module()
+    node = _Node()
+    listener = demo.Listener(node)
+    for k, lost in enumerate([0, 2]):  # the second episode's first two frames (25 ms apart) were lost
+        instance = SimInstance(episode_id=f"unseen-box-sand-000{k}", shape="box", material="sand",
+                               parameter_names=["friction_angle"], parameters=[0.5])
+        instance.header.stamp.sec = 10 + 2 * k  # episodes 2 s apart
+        node.callbacks["/ad_sim/instance"](instance)
+        estimate = MaterialEstimate(material="sand", class_names=["jelly", "plasticine", "sand"],
+                                    class_probabilities=[0.0, 0.0, 1.0], parameter_names=["friction_angle"],
+                                    parameters=[0.4], parameter_uncertainties=[0.1], frames_used=25 - lost)
+        estimate.oldest_stamp.sec, estimate.oldest_stamp.nanosec = 10 + 2 * k, lost * 25_000_000
+        node.callbacks["/ad_estimator/estimate"](estimate)
+    assert [i.episode_id for i, _ in listener.rows] == ["unseen-box-sand-0000", "unseen-box-sand-0001"]
+    assert not listener.pending
+    late = MaterialEstimate(material="sand")  # stamped after the last episode's frames: not paired with it
+    late.oldest_stamp.sec, late.oldest_stamp.nanosec = 12, 700_000_000
+    node.callbacks["/ad_estimator/estimate"](late)
+    assert listener.pending == [late] and len(listener.rows) == 2
