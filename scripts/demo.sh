@@ -6,7 +6,7 @@
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 case " $* " in
-  *" -h "*|*" --help "*) [[ -x "$ROOT/.venv/bin/python" ]] || "$ROOT/setup.sh" ;;  # help needs the environment, not a re-check
+  *" -h "*|*" --help "*) (. "$ROOT/env.sh") >/dev/null 2>&1 || "$ROOT/setup.sh" ;;  # help needs a working environment, not a re-check
   *) "$ROOT/setup.sh" ;;
 esac
 . "$ROOT/env.sh"

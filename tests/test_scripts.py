@@ -1,12 +1,14 @@
 """scripts/preview_episode.py and the GPU machine's shell scripts (gpu_paper.sh, gpu_ddp_check.sh): a bad
 argument is one line and a nonzero exit before any work, never a traceback after the simulation or a shell's
-own error."""
+own error. env.sh: a checkout moved or copied from where setup.sh set it up is refused, never run silently
+with the other checkout's code."""
 from __future__ import annotations
 
 import importlib.util
 import os
 import shutil
 import subprocess
+import sys
 import tarfile
 from pathlib import Path
 
@@ -168,3 +170,64 @@ def test_build_shapes_refuses_a_cache_that_is_a_file_before_building(tmp_path, c
     assert exit_info.value.code == 2  # was FileExistsError once the synthetic shapes were made
     assert capsys.readouterr().err.splitlines()[-1].endswith(
         f"error: --cache: {tmp_path / 'cache'} is a file; give a folder for the downloaded packages")
+
+
+def _checkout_as_setup_leaves_it(folder: Path) -> Path:
+    """What env.sh reads of a checkout that setup.sh set up: a real venv (its activate names the path it was made at)
+    and colcon's install tree, whose local_setup.sh names the path it was built at and whose setup.bash here stands
+    for the code that tree runs: the built checkout's, through links to its ros_ws/build and its venv."""
+    install = folder / "ros_ws" / "install"
+    install.mkdir(parents=True)
+    shutil.copy(SCRIPTS.parent / "env.sh", folder / "env.sh")
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(folder / ".venv")], check=True, timeout=60)
+    (install / "local_setup.sh").write_text(f'_colcon_prefix_sh_COLCON_CURRENT_PREFIX="{install}"\n')  # as colcon
+    (install / "setup.bash").write_text(f'export AD_TEST_CODE="{folder}"\n')
+    (install / ".ad-venv").write_text(f"{folder / '.venv'}\n")
+    return folder
+
+
+def _source_env(checkout: Path, **env: str) -> subprocess.CompletedProcess:
+    clean = {k: v for k, v in os.environ.items() if k not in ("VENV", "VIRTUAL_ENV", "AD_TEST_CODE", "AD_ROOT")}
+    return subprocess.run(["bash", "-c", f'source "{checkout}/env.sh"; '
+                                         'echo "rc=$? code=${AD_TEST_CODE:-} venv=${VIRTUAL_ENV:-}"'],
+                          capture_output=True, text=True, env={**clean, **env}, timeout=60)
+
+
+def test_env_sh_refuses_a_checkout_moved_or_copied_from_elsewhere(tmp_path):
+    """A checkout copied to c while b, where it was set up, still existed: c's env.sh returned 0 and ran b's code
+    with b's venv, silently (colcon's install tree and the venv's scripts name b). Moved from b: the venv's missing
+    activate failed it, but not saying why. Either way setup.sh again is the remedy (it makes both anew)."""
+    b = _checkout_as_setup_leaves_it(tmp_path / "b")
+    assert _source_env(b).stdout == f"rc=0 code={b} venv={b / '.venv'}\n"
+    (tmp_path / "link").symlink_to(b)  # the same checkout through a symbolic link: still itself
+    assert _source_env(tmp_path / "link").stdout == f"rc=0 code={b} venv={b / '.venv'}\n"
+
+    c = tmp_path / "c"
+    shutil.copytree(b, c, symlinks=True)
+    copied = _source_env(c)
+    assert copied.stdout == "rc=1 code= venv=\n", copied  # was rc=0, b's code and venv
+    assert copied.stderr == (f"env.sh: ros_ws/install was built in {b}, not in this checkout (moved or copied?), and "
+                             f"would run the code there or fail: run {c}/setup.sh again, which makes it anew here\n")
+    b.rename(tmp_path / "d")  # moved: the old path is gone
+    moved = _source_env(tmp_path / "d")
+    assert moved.stdout == "rc=1 code= venv=\n" and f"ros_ws/install was built in {b}, not in" in moved.stderr, moved
+
+    # Set up anew in c (what setup.sh does there), but VENV names a venv copied from where it was made.
+    shutil.rmtree(c)
+    _checkout_as_setup_leaves_it(c)
+    assert _source_env(c).stdout == f"rc=0 code={c} venv={c / '.venv'}\n"
+    shutil.copytree(c / ".venv", tmp_path / "venv", symlinks=True)
+    other = _source_env(c, VENV=str(tmp_path / "venv"))
+    assert other.stdout == "rc=1 code= venv=\n", other
+    assert f"env.sh: the venv {tmp_path / 'venv'} was made at {c / '.venv'} (moved or copied?)" in other.stderr
+
+
+@pytest.mark.ros
+def test_colcon_names_where_it_built_the_workspace_as_env_sh_reads_it():
+    """env.sh's moved-checkout check reads this line of colcon's local_setup.sh (the test above writes its like):
+    a colcon that wrote it otherwise would turn the check off without a word."""
+    install = SCRIPTS.parent / "ros_ws" / "install"
+    prefix = "_colcon_prefix_sh_COLCON_CURRENT_PREFIX="
+    lines = [line for line in (install / "local_setup.sh").read_text().splitlines() if line.startswith(prefix)]
+    assert len(lines) == 1 and lines[0][len(prefix)] == lines[0][-1] == '"', lines
+    assert os.path.samefile(lines[0][len(prefix) + 1:-1], install)  # the checkout may be reached through a link
