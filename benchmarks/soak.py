@@ -3,11 +3,12 @@
 
 Robots run the node for hours: a container that grows with each frame or episode, or latency that
 creeps up, shows only over many episodes. This starts the node (`scripts/adrun ad_estimator node`,
-its defaults: episode policy, idle flush) and `replay BAG --loop --rate R` on a ROS domain of its own,
-and every --interval seconds samples the node's RSS (VmRSS of /proc/<pid>/status) and its latest
-/diagnostics (rates, latency p50/p95 of its last 1000 estimates, counters). This process also listens
-to the masks and the estimates: the end-to-end latency (mask received here -> estimate received here,
-the same DDS hop both ways) gives p50/p99 over the first and the last minutes of the run.
+its defaults: episode policy, idle flush) and `replay BAG --loop --rate R` on the caller's ROS_DOMAIN_ID
+(unset: a domain of its own, one that no test or benchmark on this machine holds), and every --interval
+seconds samples the node's RSS (VmRSS of /proc/<pid>/status) and its latest /diagnostics (rates,
+latency p50/p95 of its last 1000 estimates, counters). This process also listens to the masks and the
+estimates: the end-to-end latency (mask received here -> estimate received here, the same DDS hop both ways)
+gives p50/p99 over the first and the last minutes of the run.
 
 The figures (JSON on stdout, and --json): RSS after --warmup and at the end, its growth per 1000
 episodes (a least-squares line through the samples after warm-up, against estimates published) and

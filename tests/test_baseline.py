@@ -61,6 +61,17 @@ def test_cma_es_lowers_the_mask_loss_and_its_psnr_is_the_resimulation_psnr():
         math.degrees(abs(fit.parameters["friction_angle"] - true_phi)))
 
 
+def test_simulator_progress_bars_are_left_out_of_a_log(tmp_path, capsys):
+    """README: long work draws progress bars on a terminal only. Simulating the observed videos drew the
+    simulator's bars (prepare instances, simulate + render) into a redirected stderr."""
+    args = baseline.build_parser().parse_args(
+        ["--size", "tiny", "--split", "unseen", "--instances", "1", "--generations", "1", "--popsize", "2",
+         "--out", str(tmp_path / "b.json")])
+    baseline.run(args)  # progress asked for, stderr not a terminal (captured)
+    err = capsys.readouterr().err
+    assert "simulate + render" not in err and "prepare instances" not in err, err
+
+
 def test_cli_fits_episodes_read_from_a_bag_and_writes_the_report(tmp_path, capsys):
     out = tmp_path / "baseline.json"
     args = baseline.build_parser().parse_args(

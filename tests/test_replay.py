@@ -305,6 +305,21 @@ def test_replay_stops_cleanly_on_signals(test_bag, sig, ros_domain_id):
     assert re.search(rf"replay: stopped after \d+ of 78 messages from {re.escape(str(test_bag))}", out), out
 
 
+def test_replay_interrupted_in_its_wait_for_acknowledgements_says_all_was_published(test_bag, ros_domain_id,
+                                                                                      monkeypatch, capsys):
+    """Ctrl-C after the last message, in the wait for reliable subscribers' acknowledgements: everything went out,
+    so it is not "stopped after 78 of 78 messages"."""
+    def interrupted(self, timeout):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(replay.Replayer, "wait_for_acknowledgments", interrupted)
+    assert replay.main(["replay", str(test_bag), "--quiet", "--delay", "0", "--rate", "1000"]) == 0
+    err = capsys.readouterr().err
+    assert "stopped after" not in err, err
+    assert err.endswith(f"replay: published 78 messages from {test_bag}; interrupted while waiting for reliable "
+                        "subscribers' acknowledgements (all published)\n"), err
+
+
 def test_replay_waits_out_a_gap_too_long_for_one_sleep(tmp_path, ros_domain_id):
     """Log times 317 years apart (past what time.sleep takes, OverflowError): the replay waits until stopped."""
     from ad_sim import messages

@@ -37,6 +37,17 @@ def test_bag_episodes_carry_the_benchmark_instances_and_their_videos():
     assert videos.shape == (6, 25, 128, 128) and videos.dtype == np.uint8 and set(np.unique(videos)) == {0, 255}
 
 
+def test_simulator_progress_bars_are_left_out_of_a_log(tmp_path, capsys):
+    """README: long work draws progress bars on a terminal only. The simulator's bars (prepare instances,
+    simulate + render) went to a redirected stderr, into the log."""
+    model = build_clip_model(tmp_path / "student.onnx", seed=3)
+    args = resim_psnr.build_parser().parse_args(
+        ["--model", str(model), "--bags", str(SAMPLE_BAG), "--instances", "1", "--out", str(tmp_path / "p.json")])
+    resim_psnr.run(args)  # progress asked for, stderr not a terminal (captured)
+    err = capsys.readouterr().err
+    assert "simulate + render" not in err and "prepare instances" not in err, err
+
+
 def test_cli_scores_a_students_estimates_by_resimulation(tmp_path, capsys):
     model = build_clip_model(tmp_path / "student.onnx", seed=3)
     out = tmp_path / "psnr.json"

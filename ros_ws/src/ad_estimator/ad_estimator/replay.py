@@ -189,6 +189,7 @@ def main(args=None) -> int:
     use_fast_heartbeat()  # acknowledgements (and the wait for them at the end) in ms, not at 3 s heartbeats
     rclpy.init(args=argv)
     node = replayer = None
+    acknowledging = False  # everything is published; the last wait is for reliable subscribers' acknowledgements
     try:
         node = Node("ad_replay")
         replayer = Replayer(node, options.bag, options.topics, options.recover, options.clock)
@@ -199,6 +200,7 @@ def main(args=None) -> int:
             played, count = count, replayer.run(options.rate, progress=not options.quiet)
             if count == played:  # nothing to play: looping would only spin
                 break
+        acknowledging = True
         acked = replayer.wait_for_acknowledgments(5.0)
         print(f"replay: published {count} messages from {options.bag}"
               + ("" if count else " (it holds none on the replayed topics)")
@@ -214,7 +216,10 @@ def main(args=None) -> int:
         # SIGINT without Python's handler) has shut the context down under a publish or the wait for acks.
         if isinstance(exc, RCLError) and rclpy.ok():
             raise
-        if replayer is not None:
+        if acknowledging:  # nothing was left to publish: only the wait for acknowledgements was cut short
+            print(f"replay: published {count} messages from {options.bag}; interrupted while waiting for reliable "
+                  "subscribers' acknowledgements (all published)", file=sys.stderr)
+        elif replayer is not None:
             print(f"replay: stopped after {messages_published(replayer, options.loop)} from {options.bag}",
                   file=sys.stderr)
     finally:

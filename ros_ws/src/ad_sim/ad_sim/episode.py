@@ -157,11 +157,11 @@ def simulate_batch(
     if progress:
         from tqdm import tqdm
 
-        indices = tqdm(indices, desc="prepare instances", unit="instance")
+        indices = tqdm(indices, desc="prepare instances", unit="instance", disable=None)  # terminal only
     prepared = [_prepare(instances[i], views) for i in indices]
     groups = mpm.group_by_substeps([p.scene for p in prepared], max_batch)
     if progress:
-        groups = tqdm(groups, desc="simulate + render", unit="batch")
+        groups = tqdm(groups, desc="simulate + render", unit="batch", disable=None)
     episodes: list[Episode | None] = [None] * len(instances)
     for group in groups:
         members = [prepared[i] for i in group]
