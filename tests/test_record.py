@@ -219,3 +219,73 @@ def test_a_header_stamp_that_cannot_be_a_log_time_is_recorded_at_its_receive_tim
     assert [m.log_time_ns for m in read[:3]] == [5 * 10**9, 6 * 10**9, 7 * 10**9]
     assert all(before <= m.log_time_ns <= after for m in read[3:]) and len(read) == 6
     assert bytes(read[-1].message) == b"\x00\x01\x00\x00"
+
+
+def test_a_bag_that_cannot_be_written_on_stops_the_recording_and_keeps_what_was_written(rclpy_context, ros_domain_id,
+                                                                                        tmp_path):
+    """The recorder's files may not grow past 1 MB (RLIMIT_FSIZE: a write past it fails with EFBIG, as one on a full
+    disk does with ENOSPC). The recorder logged each message it could not write, naming no file, counted as written
+    those of the chunk that failed, and went on writing after the half-written chunk until a failed flush ended it
+    with a traceback-less "cannot write the bag: [Errno 27] File too large" and exit status 2, its counts never
+    logged. Now it stops at the first failed write with exit status 1 and an error naming the file, and the bag
+    holds, readable with --recover, exactly the messages it says it wrote."""
+    import resource
+    import subprocess
+
+    items = episode_items(count=3)  # about 2 MB, under the flow control window: publishing never waits
+    publisher = Publisher(rclpy_context)
+    bag = tmp_path / "bag"
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (1_000_000, hard))  # for the recorder: the limit is inherited
+    try:
+        recorder = start("record", ros_domain_id, tmp_path / "r.log", output=str(bag), flush_period=0.2)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    try:
+        publisher.wait_for_subscribers()
+        publisher.publish(items)
+        try:
+            status = recorder.wait(60)
+        except subprocess.TimeoutExpired:  # it recorded on
+            status = stop(recorder)
+    finally:
+        publisher.close()
+    log = (tmp_path / "r.log").read_text()
+    assert status == 1 and "Traceback" not in log, log
+    assert f"recording stopped: cannot write {bag / 'bag_0.mcap'}: File too large. Writing stopped" in log, log
+    received, written = recorder_counts(log)
+    assert 0 < written < received <= len(items), log
+    with pytest.warns(UserWarning, match="truncated"):
+        recovered = list(BagReader(bag, recover=True, raw=True))
+    assert len(recovered) == written
+
+
+def test_topic_names_and_the_output_folder_are_resolved_as_ros_and_a_shell_would(rclpy_context, ros_domain_id,
+                                                                                 tmp_path, monkeypatch):
+    """`-p topics:="['chatter']"` (a name relative to the root namespace, as `ros2 topic pub chatter` takes it) and
+    `-p output:=~/rec`: discovery lists /chatter, which never equalled "chatter", so nothing was recorded, without a
+    word, into a folder literally named "~" under the working directory. Now the names are resolved as ROS
+    resolves them (an invalid one is an error before anything is written) and ~ is the home folder."""
+    from rclpy.node import Node
+    from std_msgs.msg import String
+
+    monkeypatch.setenv("HOME", str(tmp_path))  # start() passes the environment on
+    node = Node("chatter", context=rclpy_context)
+    chatter = node.create_publisher(String, "/chatter", 10)
+    try:
+        recorder = start("record", ros_domain_id, tmp_path / "r.log", output="~/rec", topics=["chatter"])
+        deadline = time.monotonic() + 30
+        while chatter.get_subscription_count() < 1:
+            assert time.monotonic() < deadline and recorder.poll() is None, (tmp_path / "r.log").read_text()
+            time.sleep(0.05)
+        chatter.publish(String(data="hello"))
+        assert chatter.wait_for_all_acked()
+        time.sleep(0.3)
+        assert stop(recorder) == 0
+    finally:
+        node.destroy_node()
+    assert [m.message.data for m in BagReader(tmp_path / "rec")] == ["hello"]
+    bad = start("record", ros_domain_id, tmp_path / "bad.log", output=str(tmp_path / "bad"), topics=["/chatter/"])
+    assert bad.wait(60) == 2
+    assert "topics: '/chatter/' is not a topic name" in (tmp_path / "bad.log").read_text()
+    assert not (tmp_path / "bad").exists()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import shutil
@@ -143,6 +144,30 @@ def test_reader_orders_by_log_time_across_chunks(tmp_path):
     assert [s for _, s, _ in read] == sorted(stamps)
     # ties keep file order
     assert [m.message.data[0] for m in read if m.log_time_ns == 5] == [i for i, s in enumerate(stamps) if s == 5]
+
+
+def test_a_killed_writers_file_is_read_chunk_by_chunk_in_log_time_order(tmp_path, monkeypatch):
+    """A file without a summary (a killed recorder's): every message of it was decompressed and held before the
+    first was yielded, so recovering (or repairing) a large unsplit recording needed memory for all of it (369 MB
+    resident to read a 36 MB file of 300 MB of messages, 58 MB once closed). Now the chunks' start times come from
+    their record headers and messages are released as the chunks are read, as with a summary, in the same order."""
+    path = tmp_path / "killed"
+    stamps = [i * 10 + (15 if i % 3 == 1 else 0) for i in range(60)]  # out of order from chunk to chunk
+    writer = BagWriter(path, chunk_size=1)  # one message per chunk
+    writer.add_topic("/a", "sensor_msgs/msg/Image")
+    for i, stamp in enumerate(stamps):
+        writer.write("/a", stamp, messages.mask_message(np.full((1, 1), i, np.uint8), stamp, "f"))
+    writer._stream.close()  # never closed: no summary, as after a kill -9
+    decompressed = []
+    breakup_chunk = rosbag.breakup_chunk
+    monkeypatch.setattr(rosbag, "breakup_chunk", lambda *a, **k: decompressed.append(1) or breakup_chunk(*a, **k))
+    with pytest.warns(UserWarning, match="truncated"):
+        read = iter(BagReader(path, recover=True))
+        first = next(read)
+        assert first.log_time_ns == 0 and len(decompressed) < 5
+        rest = list(read)
+    assert [m.log_time_ns for m in [first, *rest]] == sorted(stamps)
+    assert [m.message.data[0] for m in [first, *rest]] == sorted(range(60), key=lambda i: stamps[i])
 
 
 def test_independent_reader_decodes_with_types_from_the_bag(bag):
@@ -615,3 +640,132 @@ def test_a_repair_that_fails_leaves_nothing_behind(bag, tmp_path, capsys):
         assert rosbag.main(["repair", str(path), "--out", str(tmp_path / "fixed")]) == 1
     assert capsys.readouterr().err.startswith(f"error: {path / 'two_1.mcap'} is not an MCAP file")
     assert not (tmp_path / "fixed").exists()
+
+
+# ------------------------------------------------------------------------------- a disk that fills up
+
+
+class _FillingFile:
+    """A bag file whose disk fills up after `room` more bytes (the write that crosses it is partial, as the OS
+    writes what fits, the next raises ENOSPC); room None: there is space again."""
+
+    def __init__(self, file, room: int | None = None):
+        self.file, self.room = file, room
+
+    def write(self, data) -> int:
+        if self.room is not None:
+            if self.room == 0:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            data = data[: self.room]
+            self.room -= len(data)
+        return self.file.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self.file, name)
+
+
+def test_a_full_disk_stops_the_writer_and_keeps_every_chunk_written_before(tmp_path):
+    """The disk fills up in the middle of a chunk, then has space again. The writer went on after the OS error:
+    its next chunk followed the half-written one, and reading (even with --recover) lost every message after the
+    error point; the error named no file; metadata.yaml and the writer counted the messages of the lost chunk. Now
+    the half-written record is cut off, writing stops with an error naming the file and what to do, and the file
+    reads back with --recover up to its last complete chunk, as a killed writer's does; `lost` counts the rest."""
+    path = tmp_path / "full"
+    episodes = [fabricated_episode(seed) for seed in range(4)]
+    writer = BagWriter(path, chunk_size=100_000)
+    items = [item for index, episode in enumerate(episodes) for item in messages.episode_messages(episode, index)]
+    for topic, type_name in messages.topic_types(1).items():
+        writer.add_topic(topic, type_name)
+    flushed_at = len(items) // 2
+    for topic, stamp, message in items[:flushed_at]:
+        writer.write(topic, stamp, message)
+    writer.flush()
+    stream = writer._stream
+    stream._file = _FillingFile(stream._file, room=1000)  # the next chunk is written in part
+    written = flushed_at
+    with pytest.raises(OSError, match=rf"cannot write {re.escape(str(path / 'full_0.mcap'))}: No space left on "
+                                      r"device\. Writing stopped.*--recover.*ad_sim\.rosbag repair") as failure:
+        for topic, stamp, message in items[flushed_at:]:
+            writer.write(topic, stamp, message)
+            written += 1
+    assert isinstance(failure.value, BagError)
+    stream._file.room = None  # space again: nothing more is written after the half chunk
+    for topic, stamp, message in items[-3:]:
+        with pytest.raises(BagError, match="Writing stopped"):
+            writer.write(topic, stamp, message)
+    writer.close()  # the error was raised already
+    with pytest.warns(UserWarning) as caught:
+        recovered = [(m.topic, m.log_time_ns) for m in BagReader(path, recover=True, raw=True)]
+    assert all("corrupt" not in str(w.message) for w in caught), [str(w.message) for w in caught]
+    assert sorted(recovered) == sorted((t, s) for t, s, _ in items[:flushed_at])
+    assert sum(writer.lost.values()) == written - flushed_at > 0
+    metadata = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert metadata["message_count"] == writer.message_count == len(recovered)
+    assert not list(path.glob("*.tmp"))
+
+
+def test_a_disk_full_at_the_start_is_an_oserror_naming_the_file(tmp_path, monkeypatch):
+    """No room for the first file's header: the OSError (what `record` and `generate` report, as for a folder that
+    cannot be made) said "[Errno 28] No space left on device" and named no file."""
+
+    def full(self, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(rosbag._UnbufferedFile, "write", full)
+    with pytest.raises(OSError, match=re.escape(f"No space left on device: '{tmp_path / 'bag' / 'bag_0.mcap'}'")):
+        BagWriter(tmp_path / "bag")
+
+
+def test_a_repair_onto_a_full_disk_is_one_line_and_leaves_nothing(bag, tmp_path, capsys, monkeypatch):
+    """The disk holding --out fills up while `repair` writes: a traceback ending in "OSError: [Errno 28] No space
+    left on device" (main() reported BagErrors only), and the half-made bag left at --out."""
+    source, _ = bag
+    write = rosbag._UnbufferedFile.write
+
+    def full_for_chunks(self, data):  # room for a file's header, not for its chunks
+        if len(data) > 1000:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return write(self, data)
+
+    monkeypatch.setattr(rosbag._UnbufferedFile, "write", full_for_chunks)
+    assert rosbag.main(["repair", str(source), "--out", str(tmp_path / "fixed")]) == 1
+    assert capsys.readouterr().err == (f"error: cannot write the repaired bag {tmp_path / 'fixed'}: No space left on "
+                                       "device; nothing is left there. Free space on that file system, or pass "
+                                       "another --out\n")
+    assert not (tmp_path / "fixed").exists()
+
+
+def test_a_split_that_cannot_open_the_next_file_loses_no_message_it_said_it_wrote(tmp_path, monkeypatch):
+    """The write that reaches max_bag_size closes its file, then the next file cannot be made (a full disk). The
+    write raised, though its message is in the closed, complete file (a recorder counted it lost). Now that write
+    returns, the next one raises naming the file that could not be made, and every message whose write returned is
+    read back; with no next write, close() raises it."""
+    opened = rosbag._UnbufferedFile.__init__
+
+    def no_second_file(self, path):
+        if path.name.endswith("_1.mcap"):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        opened(self, path)
+
+    data = bytes(4) + np.random.default_rng(0).random(2500, dtype=np.float32).tobytes()
+    options = {"max_bag_size": rosbag.MIN_SPLIT_SIZE, "chunk_size": 20_000}
+    with BagWriter(tmp_path / "dry", **options) as writer:  # how many messages fill the first file
+        writer.add_topic("/p", "sensor_msgs/msg/PointCloud2")
+        while not (tmp_path / "dry" / "dry_1.mcap").exists():
+            writer.write("/p", writer.message_count, data)
+        fill = writer.message_count
+    monkeypatch.setattr(rosbag._UnbufferedFile, "__init__", no_second_file)
+    for then in ("write", "close"):
+        path = tmp_path / then
+        writer = BagWriter(path, **options)
+        writer.add_topic("/p", "sensor_msgs/msg/PointCloud2")
+        returned = 0
+        for _ in range(fill):
+            writer.write("/p", returned, data)
+            returned += 1
+        with pytest.raises(BagError, match=re.escape(f"cannot write {path / f'{then}_1.mcap'}: No space left")):
+            if then == "write":
+                writer.write("/p", returned, data)
+            writer.close()
+        writer.close()
+        assert len(list(BagReader(path, raw=True))) == returned == writer.message_count

@@ -8,18 +8,22 @@ recording made at any speed equals `generate`'s bag) unless stamp_source is "rec
 stamp cannot be a log time (negative, or nanosec >= 1e9: then the receive time, with a warning);
 publish time is always the receive wall time. SIGINT/SIGTERM finalise the bag after taking what
 already arrived (for at most 2 s; a second signal skips that), and so does an error; a kill -9
-leaves every flushed chunk readable (chunks are flushed every flush_period seconds).
+leaves every flushed chunk readable (chunks are flushed every flush_period seconds). A bag that
+cannot be written on (a full disk, a read-only file system) stops the recording with exit status 1
+and an error naming the file; the bag keeps every chunk written before, as a kill -9 leaves it.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import signal
 import threading
 import time
 from datetime import datetime, timezone
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.node import Node
@@ -28,7 +32,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from . import messages
-from .rosbag import BagError, BagWriter, header_stamp_ns, load_schema, qos_profile, starts_with_header
+from .rosbag import BagError, BagWriteError, BagWriter, header_stamp_ns, load_schema, qos_profile, starts_with_header
 from .dds import declare_parameters, message_class, node_cli, number
 
 DRAIN_IDLE = 0.3  # s without incoming work after a stop signal before the bag is closed
@@ -55,8 +59,9 @@ def offered_qos(endpoint_qos) -> dict:
 
 # ROS parameters: name, default, meaning (declared by RecordNode and listed by --help).
 PARAMETERS = (
-    ("output", "", "bag folder to write; empty: bags/record-<UTC time>"),
-    ("topics", Parameter.Type.STRING_ARRAY, "topics to record; unset: every simulator topic under topic_prefix, as they appear"),
+    ("output", "", "bag folder to write (~ is the home folder); empty: bags/record-<UTC time>"),
+    ("topics", Parameter.Type.STRING_ARRAY, "topics to record (names relative to the root namespace too, as ROS resolves "
+                                            "them); unset: every simulator topic under topic_prefix, as they appear"),
     ("topic_prefix", messages.DEFAULT_PREFIX, "prefix of the simulator topics"),
     ("max_bag_size", 0, "split .mcap files at this many bytes; 0: never"),
     ("compression", "zstd", "chunk compression: zstd | lz4 | none"),
@@ -75,12 +80,14 @@ class RecordNode(Node):
         for name, seconds in periods.items():
             if not 0 < seconds < math.inf:
                 raise ValueError(f"{name} must be a positive number of seconds, got {seconds}")
-        output = get("output") or f"bags/record-{datetime.now(timezone.utc):%Y%m%d-%H%M%S}"
+        output = os.path.expanduser(get("output")) or f"bags/record-{datetime.now(timezone.utc):%Y%m%d-%H%M%S}"
+        # Discovery lists fully qualified names: "chatter" (or a remapped name) is recorded as ROS resolves it.
         try:
-            self.wanted = {t for t in get("topics") if t}
+            self.wanted = {self._resolve("topics", t) for t in get("topics") if t}
         except ParameterUninitializedException:
             self.wanted = set()
-        self.prefix = get("topic_prefix").rstrip("/")
+        prefix = get("topic_prefix").rstrip("/")
+        self.prefix = self._resolve("topic_prefix", prefix) if prefix else ""
         self.stamp_source = get("stamp_source")
         if self.stamp_source not in ("header", "receive"):
             raise BagError(f"stamp_source must be 'header' or 'receive', got {self.stamp_source!r}")
@@ -89,12 +96,19 @@ class RecordNode(Node):
         self.written: dict[str, int] = {}
         self.subscriptions_by_topic = {}
         self.unrecordable: set[str] = set()
+        self.error: BagWriteError | None = None  # the bag cannot be written on: the recording stops
         self._unflushed = False
         self.create_timer(periods["discovery_period"], self.discover)
         self.create_timer(periods["flush_period"], self.flush)
         self.get_logger().info(
             f"recording {'topics ' + ', '.join(sorted(self.wanted)) if self.wanted else 'simulator topics under ' + self.prefix} to {output}"
         )
+
+    def _resolve(self, parameter: str, name: str) -> str:
+        try:
+            return self.resolve_topic_name(name)
+        except RCLError as exc:  # its message ends in a C source location
+            raise ValueError(f"{parameter}: {name!r} is not a topic name ({str(exc).split(', at ')[0]})") from None
 
     def _wanted(self, topic: str) -> bool:
         return topic in self.wanted if self.wanted else messages.is_simulator_topic(topic, self.prefix)
@@ -108,6 +122,9 @@ class RecordNode(Node):
                 continue  # only subscribers so far
             try:
                 self._subscribe(topic, types[0], publishers)
+            except BagWriteError as exc:
+                self._failed(exc)
+                return
             except (BagError, ImportError, AttributeError) as exc:  # no definition or typesupport here
                 self.unrecordable.add(topic)
                 self.get_logger().error(f"cannot record {topic} [{types[0]}]: {exc}")
@@ -145,7 +162,10 @@ class RecordNode(Node):
                         unusable_stamp_warned = True
             try:
                 self.writer.write(topic, log_time, data, publish_time_ns=received_ns)
-            except (BagError, OSError) as exc:  # e.g. a full disk: keep counting, say why it is lost
+            except BagWriteError as exc:  # a full disk, ...: the writer stopped, and so does the recording
+                self._failed(exc)
+                return
+            except (BagError, OSError) as exc:  # this message only: keep counting, say why it is lost
                 self.get_logger().error(f"message on {topic} not written: {exc}", throttle_duration_sec=5.0)
                 return
             self.written[topic] += 1
@@ -157,12 +177,26 @@ class RecordNode(Node):
         self.get_logger().info(f"subscribed to {topic} [{type_name}]")
 
     def flush(self) -> None:
-        if self._unflushed:
-            self.writer.flush()
+        if self._unflushed and self.error is None:
+            try:
+                self.writer.flush()
+            except BagWriteError as exc:
+                self._failed(exc)
             self._unflushed = False
 
+    def _failed(self, exc: BagWriteError) -> None:
+        """The bag cannot be written on: said once; main() stops the recording and exits with status 1."""
+        if self.error is None:
+            self.error = exc
+            self.get_logger().error(f"recording stopped: {exc}")
+
     def close(self) -> None:
-        self.writer.close()
+        try:
+            self.writer.close()
+        except BagWriteError as exc:
+            self._failed(exc)
+        for topic, lost in self.writer.lost.items():  # counted as written, but the failed write lost them
+            self.written[topic] -= lost
         self.get_logger().info(
             f"bag {self.writer.path}: received {sum(self.received.values())}, "
             f"written {sum(self.written.values())} messages on {len(self.written)} topics"
@@ -187,17 +221,21 @@ def main(args: list[str] | None = None) -> None:
         try:
             executor = SingleThreadedExecutor()
             executor.add_node(node)
-            while not stop.is_set():
+            while not stop.is_set() and node.error is None:
                 executor.spin_once(timeout_sec=0.1)
             # Take what already arrived before closing the bag.
             idle_since, seen = time.monotonic(), sum(node.received.values())
             give_up = idle_since + DRAIN_MAX
-            while time.monotonic() - idle_since < DRAIN_IDLE and time.monotonic() < give_up and not stop_now.is_set():
+            while (time.monotonic() - idle_since < DRAIN_IDLE and time.monotonic() < give_up and not stop_now.is_set()
+                   and node.error is None):
                 executor.spin_once(timeout_sec=0.05)
                 if sum(node.received.values()) != seen:
                     idle_since, seen = time.monotonic(), sum(node.received.values())
         finally:  # after an error too: closing writes the chunk in memory and the summaries readers need
             node.close()
+        if node.error is not None:
+            print(f"ad_sim record: {node.error} (-p output:=...)")
+            raise SystemExit(1)
     except (ValueError, ParameterException) as exc:  # bad parameters (a BagError is a ValueError)
         print(f"ad_sim record: {exc}")
         raise SystemExit(2) from None

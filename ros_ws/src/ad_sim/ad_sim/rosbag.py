@@ -81,6 +81,11 @@ class BagDamaged(BagError):
         self.add_note("In Python: BagReader(path, recover=True) reads what is readable.")
 
 
+class BagWriteError(BagError, OSError):
+    """Writing a bag's file failed (a full disk, a file system gone read-only, an I/O error): the writer is
+    stopped, and its files keep every chunk written before (an OSError too, for callers that catch those)."""
+
+
 class BagUnreadable(BagError):
     """Recovering found no message at all: every file of the bag is damaged before its first
     complete chunk (or empty)."""
@@ -280,9 +285,19 @@ class _UnbufferedFile:
         self._file = open(path, "xb", buffering=0)  # noqa: SIM115 (closed in close())
 
     def write(self, data: bytes) -> int:
+        """All of `data` or, when writing fails (a full disk), none of it: the part written is cut off
+        again, so that the file stays whole records, readable up to there, and what follows is not
+        written after half a record."""
+        start = self._file.tell()
         view = memoryview(data)
-        while view:
-            view = view[self._file.write(view) :]
+        try:
+            while view:
+                view = view[self._file.write(view) :]
+        except OSError:
+            with contextlib.suppress(OSError):  # freeing space works on a full disk
+                self._file.truncate(start)
+                self._file.seek(start)
+            raise
         return len(data)
 
     def tell(self) -> int:
@@ -323,6 +338,9 @@ class BagWriter:
     encoded with the topic's schema (mcap_ros2's encoder). metadata.yaml is written at open,
     at each split and at close; close() must run for the MCAP summaries to be written
     (a killed writer still leaves complete chunks readable, see BagReader(recover=True)).
+    A failed write (a full disk, ...) raises BagWriteError and stops the writer, its files left as a
+    killed writer's are: every complete chunk readable; `lost` then counts, per topic, the messages
+    written to it that were not yet in a complete chunk (they are not in the topic counts).
     """
 
     def __init__(
@@ -355,7 +373,15 @@ class BagWriter:
         self._channel_ids: dict[str, int] = {}
         self._schema_ids: dict[str, int] = {}
         self._closed = False
-        self._open_next_file()
+        self._error = ""  # why writing stopped (BagWriteError), after a failed write
+        self._unreported = False  # the failure was not raised yet
+        self._pending: dict[str, int] = {}  # topic -> messages of the current file not yet in a written chunk
+        self.lost: dict[str, int] = {}  # topic -> messages lost by a failed write (not in the counts)
+        try:
+            self._open_next_file()
+        except OSError as exc:  # a full disk: its error names no file
+            exc.filename = exc.filename or str(self.path / self._files[-1].path if self._files else self.path)
+            raise
 
     # -- topics and messages
 
@@ -377,9 +403,10 @@ class BagWriter:
         if topic in self._topics:
             return
         schema = schema or load_schema(type_name)
-        self._topics[topic] = _Topic(topic, schema, list(qos_profiles or [qos_profile()]))
-        self._register_channel(self._topics[topic])
-        self._write_metadata()
+        with self._writing():
+            self._topics[topic] = _Topic(topic, schema, list(qos_profiles or [qos_profile()]))
+            self._register_channel(self._topics[topic])
+            self._write_metadata()
 
     def write(self, topic: str, log_time_ns: int, message: bytes | Any, publish_time_ns: int | None = None) -> None:
         """Write one message: CDR bytes, or a dict/object encoded with the topic's schema."""
@@ -396,30 +423,50 @@ class BagWriter:
                            f"not an MCAP time (0 to {MAX_MCAP_TIME} ns)")
         if not isinstance(message, (bytes, bytearray, memoryview)):
             message = self._encode(info.schema, message)
-        self._mcap.add_message(
-            channel_id=self._channel_ids[topic],
-            log_time=log_time_ns,
-            data=bytes(message),
-            publish_time=publish_time_ns,
-            sequence=info.message_count,
-        )
-        info.message_count += 1
-        self._files[-1].add(log_time_ns)
+        with self._writing():
+            written = self._stream.tell()
+            self._mcap.add_message(
+                channel_id=self._channel_ids[topic],
+                log_time=log_time_ns,
+                data=bytes(message),
+                publish_time=publish_time_ns,
+                sequence=info.message_count,
+            )
+            info.message_count += 1
+            self._files[-1].add(log_time_ns)
+            if self._stream.tell() != written:  # the chunk in progress, this message included, was written
+                self._pending.clear()
+            else:
+                self._pending[topic] = self._pending.get(topic, 0) + 1
         if self.max_bag_size and self._stream.tell() >= self.max_bag_size:
-            self._close_file()
-            self._open_next_file()
+            try:
+                with self._writing():
+                    self._close_file()
+                    self._open_next_file()
+            except BagWriteError:
+                if self.lost:  # this message was lost with the last chunk of the file
+                    self.lost[topic] -= 1
+                    raise
+                self._unreported = True  # it is in a complete file: the next write (or close) says why it stopped
 
     def flush(self) -> None:
         """Close the chunk in progress so that it survives a kill of this process."""
         if self._mcap is not None and not self._closed:
-            self._mcap.flush()
+            with self._writing():
+                self._mcap.flush()
+            self._pending.clear()
 
     def close(self) -> None:
+        """Finish the file in progress and metadata.yaml; after a failed write, only mark the writer closed."""
         if self._closed:
             return
-        self._close_file()
-        self._closed = True
-        self._write_metadata()
+        try:
+            if not self._error or self._unreported:
+                with self._writing():
+                    self._close_file()
+                    self._write_metadata()
+        finally:
+            self._closed = True
 
     def __enter__(self) -> BagWriter:
         return self
@@ -428,6 +475,38 @@ class BagWriter:
         self.close()
 
     # -- internals
+
+    @contextlib.contextmanager
+    def _writing(self):
+        """Around whatever writes the bag's files: after an OSError the MCAP writer's state is unknown (its chunk in
+        progress gone), so writing stops there, with a BagWriteError now and at each later write."""
+        if self._error:
+            self._unreported = False
+            raise BagWriteError(self._error)
+        try:
+            yield
+        except OSError as exc:
+            raise self._fail(exc) from exc
+
+    def _fail(self, exc: OSError) -> BagWriteError:
+        current = self.path / self._files[-1].path
+        for topic, count in self._pending.items():  # the counts say what the files hold
+            self._topics[topic].message_count -= count
+        self._files[-1].message_count -= sum(self._pending.values())
+        self.lost, self._pending = self._pending, {}
+        lost = sum(self.lost.values())
+        self._error = (
+            f"cannot write {exc.filename or current}: {exc.strerror or exc}. Writing stopped; the bag's files keep "
+            "every chunk written before" + (f" (not the last {lost} messages, in no complete chunk yet)" if lost else "")
+            + f": read them with --recover, or make a complete bag of them with `python -m ad_sim.rosbag repair "
+            f"{self.path} --out NEW`. Free space on that file system, or write to another folder"
+        )
+        with contextlib.suppress(OSError):
+            self._stream.close()  # ends after its last whole record (_UnbufferedFile)
+        self._mcap = None
+        with contextlib.suppress(OSError):  # the true counts, if there is room for them
+            self._write_metadata()
+        return BagWriteError(self._error)
 
     def _encode(self, schema: MessageSchema, message: Any) -> bytes:
         encoder = self._encoders.get(schema.name)
@@ -439,9 +518,9 @@ class BagWriter:
     def _open_next_file(self) -> None:
         name = f"{self.path.name}_{len(self._files)}.mcap"
         self._stream = _UnbufferedFile(self.path / name)
+        self._files.append(_FileStats(name))
         self._mcap = Writer(self._stream, chunk_size=self.chunk_size, compression=self._compression)
         self._mcap.start(profile="ros2", library="ad_sim.rosbag")
-        self._files.append(_FileStats(name))
         self._channel_ids.clear()
         self._schema_ids.clear()
         for info in self._topics.values():
@@ -469,6 +548,7 @@ class BagWriter:
         self._mcap.finish()
         self._stream.close()
         self._mcap = None
+        self._pending.clear()
 
     def _metadata(self) -> dict:
         starts = [f.start for f in self._files if f.start is not None]
@@ -512,8 +592,12 @@ class BagWriter:
     def _write_metadata(self) -> None:
         target = self.path / METADATA_FILE
         tmp = target.with_suffix(".yaml.tmp")
-        tmp.write_text(_dump_yaml({"rosbag2_bagfile_information": self._metadata()}))
-        tmp.replace(target)
+        try:
+            tmp.write_text(_dump_yaml({"rosbag2_bagfile_information": self._metadata()}))
+            tmp.replace(target)
+        except OSError:  # a full disk: no half-written file left beside the bag (metadata.yaml stays as it was)
+            tmp.unlink(missing_ok=True)
+            raise
 
 
 # --------------------------------------------------------------------------- reader
@@ -688,7 +772,7 @@ class BagReader:
             with _mapped(scan.path) as data:
                 summary = self._read_summary(scan, data)
                 if summary is None or not scan.channels:
-                    for _ in self._scan_records(scan, data, None):
+                    for _ in self._scan_data(scan, data, summary):
                         pass
             for channel in scan.channels.values():
                 schema = scan.schemas.get(channel.schema_id)
@@ -844,17 +928,26 @@ class BagReader:
     def _scan_file(self, scan: _FileScan) -> Iterator[tuple[int, int, Channel, bytes]]:
         """Messages of one file as (log_time, order, channel, data), in log-time order."""
         with _mapped(scan.path) as data:
-            chunk_indexes = self._read_summary(scan, data)
-            # chunk offset -> earliest log time in that and every later chunk: once past a chunk,
-            # messages before the next chunk's value can be released in order.
-            release_at: dict[int, int] = {}
-            earliest = None
-            for chunk_index in sorted(chunk_indexes or [], key=lambda c: c.chunk_start_offset, reverse=True):
-                start = chunk_index.message_start_time
-                earliest = start if earliest is None else min(earliest, start)
-                release_at[chunk_index.chunk_start_offset] = earliest
-            chunk_lengths = {c.chunk_start_offset: c.chunk_length for c in chunk_indexes or []}
-            yield from self._scan_records(scan, data, release_at or None, chunk_lengths)
+            yield from self._scan_data(scan, data, self._read_summary(scan, data))
+
+    def _scan_data(self, scan: _FileScan, data, chunk_indexes: list[ChunkIndex] | None
+                   ) -> Iterator[tuple[int, int, Channel, bytes]]:
+        """_scan_records with the chunks' start times from the summary's chunk indexes or, without a summary (a
+        killed writer's file), from the chunk records' headers: messages are released in order as the chunks are
+        read, so that a file is not held in memory whole (a killed recorder's can be larger than memory)."""
+        if chunk_indexes is None:
+            starts = _chunk_start_times(data)
+        else:
+            starts = {c.chunk_start_offset: c.message_start_time for c in chunk_indexes}
+        # chunk offset -> earliest log time in that and every later chunk: once past a chunk,
+        # messages before the next chunk's value can be released in order.
+        release_at: dict[int, int] = {}
+        earliest = None
+        for offset in sorted(starts, reverse=True):
+            earliest = starts[offset] if earliest is None else min(earliest, starts[offset])
+            release_at[offset] = earliest
+        chunk_lengths = {c.chunk_start_offset: c.chunk_length for c in chunk_indexes or []}
+        yield from self._scan_records(scan, data, release_at or None, chunk_lengths)
 
     def _scan_records(self, scan: _FileScan, data, release_at: dict[int, int] | None,
                       chunk_lengths: dict[int, int] | None = None) -> Iterator[tuple[int, int, Channel, bytes]]:
@@ -956,6 +1049,21 @@ class BagReader:
         yield from release(None)
 
 
+def _chunk_start_times(data) -> dict[int, int]:
+    """Offset -> message_start_time of each chunk record, walking the data section's record headers as
+    _scan_records does (up to an incomplete record, a data end or a footer), without decompressing anything."""
+    starts = {}
+    pos, size = MAGIC_SIZE, len(data)
+    while pos + 9 <= size:
+        opcode, length = data[pos], struct.unpack_from("<Q", data, pos + 1)[0]
+        if pos + 9 + length > size or opcode in (Opcode.DATA_END, Opcode.FOOTER):
+            break
+        if opcode == Opcode.CHUNK and length >= 8:
+            starts[pos] = struct.unpack_from("<Q", data, pos + 9)[0]
+        pos += 9 + length
+    return starts
+
+
 @dataclass
 class BagEpisode:
     """Messages of one episode: the /ad_sim/instance message and every other topic's messages."""
@@ -1055,6 +1163,11 @@ def repair(source: str | os.PathLike, out: str | os.PathLike, compression: str =
             for message in reader:
                 writer.write(message.topic, message.log_time_ns, message.message)
                 count += 1
+    except BagWriteError as exc:  # a full disk: its advice on the files left does not apply, none are
+        clean_up()
+        cause = exc.__cause__
+        raise BagError(f"cannot write the repaired bag {out}: {getattr(cause, 'strerror', None) or cause or exc}; "
+                       "nothing is left there. Free space on that file system, or pass another --out") from None
     except BaseException:  # nothing readable, a file it cannot read, Ctrl-C, ...: no empty or partial bag in its place
         clean_up()
         raise
