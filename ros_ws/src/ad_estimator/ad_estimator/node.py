@@ -15,6 +15,7 @@ Services: ~/reset (std_srvs/Trigger), ~/estimate (ad_msgs/srv/EstimateMaterial).
 from __future__ import annotations
 
 import queue
+import signal
 import sys
 import threading
 import time
@@ -30,19 +31,22 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy._rclpy_pybind11 import RCLError
-from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
 from ad_estimator.images import ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, TRAINED_EXTENT, Estimate, EstimatorModel, ModelError, object_extent
-from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, check_parameters, model_window
+from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, RANGES, check_parameters, model_window
 from ad_estimator.window import WindowOutput, clip_output, clip_stamps, ns_to_stamp, stamp_to_ns
 from ad_sim.dds import declare_parameters, node_cli, number
 
 LOG_THROTTLE_S = 5.0
+FINISH_TIMEOUT_S = 2.0  # at shutdown: for the queued frames' estimates, then for their delivery
 MAX_CLIP_FRAMES = 1000
 # The executor thread runs much Python between callbacks; with the default 5 ms GIL switch
 # interval the inference worker can wait that long for a frame just queued (measured: p95
@@ -124,6 +128,8 @@ class EstimatorNode(Node):
         self._reset_lock = threading.Lock()
         self._frame_id = ""  # of the last frame the worker processed: the camera of the episode it belongs to
         self._stop = threading.Event()
+        self._closing = threading.Event()  # input has ended (finish): the worker empties the queue, flushes, stops
+        self._finished = threading.Event()  # ... and it did
         self._last_frame_time = time.monotonic()
         self._unheard_publisher = False  # an incompatible publisher was seen and no frame has arrived since
         self._episode_off_framing = False  # the current episode was counted (and warned about) off framing
@@ -132,7 +138,9 @@ class EstimatorNode(Node):
         reliability = ReliabilityPolicy.RELIABLE if p["reliable"] else ReliabilityPolicy.BEST_EFFORT
         input_qos = QoSProfile(depth=p["input_depth"], reliability=reliability,
                                history=qos_profile_sensor_data.history, durability=qos_profile_sensor_data.durability)
-        self.publisher = self.create_publisher(MaterialEstimate, "~/estimate", QoSProfile(depth=10))
+        self.publisher = self.create_publisher(
+            MaterialEstimate, "~/estimate", QoSProfile(depth=10),
+            event_callbacks=PublisherEventCallbacks(incompatible_qos=self.on_incompatible_subscription))
         self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.subscription = self.create_subscription(
             Image, self._input_topic(), self.on_image, input_qos,
@@ -160,7 +168,7 @@ class EstimatorNode(Node):
     # ------------------------------------------------------------------ set-up
 
     def _declare_parameters(self) -> dict:
-        declare_parameters(self, [(name, default, text) for name, (default, text) in PARAMETERS.items()])
+        declare_parameters(self, [(name, default, text) for name, (default, text) in PARAMETERS.items()], RANGES)
         values = {name: number(self, name) if isinstance(default, float) else self.get_parameter(name).value
                   for name, (default, _) in PARAMETERS.items()}
         check_parameters(values)
@@ -191,9 +199,21 @@ class EstimatorNode(Node):
         self.get_logger().error(f"a publisher on {self.input_topic} offers QoS incompatible with this subscription "
                                 f"({policy.name.lower()}): no frames from it will arrive; {fix}")
 
+    def on_incompatible_subscription(self, event) -> None:
+        """A subscription to the estimates this publisher cannot serve. rclpy's own warning named the topic `~/estimate`,
+        as written in the code, whatever the namespace and remaps made of it, and said nothing of the fix."""
+        policy = QoSPolicyKind(event.last_policy_kind)
+        fix = {QoSPolicyKind.DURABILITY: "subscribe volatile: the estimates are not kept for late joiners (call the "
+                                         "~/estimate service with a clip for an estimate now)"}.get(
+            policy, "subscribe reliable or best effort, volatile, with no deadline or liveliness requirement")
+        self.get_logger().warning(f"a subscription to {self.publisher.topic_name} asks for QoS this publisher (reliable, "
+                                  f"volatile) does not offer ({policy.name.lower()}): it gets no estimates; {fix}")
+
     def on_image(self, msg: Image) -> None:
         """Subscription callback: header checks only, then the bounded queue."""
         arrival = time.perf_counter()
+        if self._closing.is_set():  # the node is stopping: what the worker has is the last of the input
+            return
         self._count("received")
         self._unheard_publisher = False
         try:
@@ -302,9 +322,13 @@ class EstimatorNode(Node):
             except queue.Empty:
                 self._sync_reset(self._generation)
                 idle = time.monotonic() - self._last_frame_time
-                if self.idle_flush > 0 and idle > self.idle_flush and self.window.active:
+                closing = self._closing.is_set()  # the end of the input, as an idle one's
+                if self.idle_flush > 0 and (idle > self.idle_flush or closing) and self.window.active:
                     for out in self.window.flush():
                         self._guarded(self._publish, out, self._frame_id, None, 0.0)
+                if closing:
+                    self._finished.set()
+                    return
                 continue
             if generation != self._generation:  # queued as ~/reset cleared the queue: it belongs to the old window
                 self._count("cleared_by_reset")
@@ -498,6 +522,16 @@ class EstimatorNode(Node):
                 self._count("errors")
                 self.warn(f"clip:{type(exc).__name__}", f"the clip service failed: {type(exc).__name__}: {exc}")
 
+    def finish(self, timeout: float = FINISH_TIMEOUT_S) -> bool:
+        """The end of the input (SIGINT, SIGTERM): frames that arrived from now on are ignored; those that arrived
+        before are estimated, the window is flushed as when the input goes idle (unless idle_flush is 0), and the
+        estimates' delivery to reliable subscribers is awaited, each for up to `timeout` s. Without this the last
+        episode's estimate was lost at shutdown whenever it was still queued or waited for the idle flush (a
+        launch file stopping the estimator as its camera or bag replay ended). True if all of it was done."""
+        self._closing.set()
+        done = self.worker.is_alive() and self._finished.wait(timeout)
+        return self.publisher.wait_for_all_acked(Duration(seconds=timeout)) and done
+
     def destroy_node(self) -> None:
         self._stop.set()
         try:  # the threads finish what they do (a clip call: up to 2 s more)
@@ -535,28 +569,72 @@ def make_executor(context=None) -> SingleThreadedExecutor:
     return SingleThreadedExecutor(context=context)
 
 
+class StopSignals:
+    """SIGINT and SIGTERM (what launch sends) as a request to stop: the node then finishes its input (finish)
+    before the context goes. rclpy's own handlers shut the context down at once, and the estimates of frames
+    still queued or of the window not yet flushed were lost. A second signal stops waiting (KeyboardInterrupt
+    wherever the main thread waits)."""
+
+    def __init__(self):
+        self.requested = threading.Event()
+
+    def install(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self)
+
+    def __call__(self, signum, frame) -> None:
+        if self.requested.is_set():
+            raise KeyboardInterrupt
+        self.requested.set()
+
+
 def main(args=None) -> int:
     parse_cli(sys.argv if args is None else args)
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
-    rclpy.init(args=args)
-    node = None
+    stop = StopSignals()
+    stop.install()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node = executor = spinner = None
     try:
-        executor = make_executor()
         node = EstimatorNode()
+        executor = make_executor()
         executor.add_node(node)
-        executor.spin()
+        failure = []  # what ended the executor's thread, raised here as when it spun on this one
+
+        def spin():
+            try:
+                executor.spin()
+            except BaseException as exc:  # noqa: BLE001 - handed to the main thread
+                failure.append(exc)
+                stop.requested.set()
+
+        spinner = threading.Thread(target=spin, name="ad_estimator_spin", daemon=True)
+        spinner.start()
+        while not stop.requested.wait(0.5) and rclpy.ok() and spinner.is_alive():
+            pass
+        if failure:
+            raise failure[0]
+        if rclpy.ok():
+            node.finish()
     except (ModelError, ValueError, ParameterException) as exc:
         print(f"ad_estimator: {exc}", file=sys.stderr)
         return 1
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass  # SIGINT / SIGTERM: a clean exit
+        pass  # a second signal, or one during start-up: a clean exit
     except RCLError:
         if rclpy.ok():
             raise
-        # a signal shut the context down while rclpy was still setting something up: also clean
+        # the context shut down while rclpy was still setting something up: also clean
     finally:
+        try:
+            if executor is not None:
+                executor.shutdown(timeout_sec=1.0)
+            if spinner is not None:
+                spinner.join(timeout=1.0)
+        except KeyboardInterrupt:
+            pass  # another signal: stop waiting for the executor
         if node is not None:
-            # print, not the ROS logger: after a signal the context (and /rosout) is already gone
+            # print, not the ROS logger: it must come out whatever state the context is in
             print(f"ad_estimator: shutting down: {node.statistics()}", file=sys.stderr, flush=True)
             node.destroy_node()
         rclpy.try_shutdown()

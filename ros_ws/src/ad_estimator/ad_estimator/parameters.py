@@ -11,7 +11,10 @@ from ad_sim import messages
 DEFAULT_INPUT_TOPIC = messages.mask_topic(0)  # the simulator's first camera: what the node reads unless remapped
 MIN_DIAGNOSTICS_PERIOD = 0.01  # s; shorter is a busy loop of /diagnostics
 MAX_THREADS = 256
-MAX_INPUT_DEPTH = 1_000_000  # frames: 40,000 episodes; rclpy itself fails past 2^31 - 1 (queue_size too: memory)
+MAX_INPUT_DEPTH = 1_000_000  # frames: 40,000 episodes; rclpy itself fails past 2^31 - 1
+# Frames waiting for the worker: 25 s of a 40 fps camera (40 episodes). A frame waits there whole (up to
+# max_image_pixels each), so a longer queue only holds memory and estimates minutes late; it grew without bound.
+MAX_QUEUE_SIZE = 1000
 DEFAULT_IDLE_FLUSH = 0.3  # s; replayed and simulated streams pause > 0.5 s between episodes, frames 0.025 s apart
 # name -> (default, description); every knob of the node is a ROS parameter.
 PARAMETERS = {
@@ -36,9 +39,23 @@ PARAMETERS = {
     "max_image_pixels": (MAX_IMAGE_PIXELS, "images over this many pixels, counted as the square they are letterboxed to, are rejected from their header alone"),
     "mask_threshold": (DEFAULT_THRESHOLD, "pixel > threshold (of 255, scaled for 16 bit) is object "
                                           "(models of grey masks, ad.mask_levels coverage, read the levels instead)"),
-    "queue_size": (64, "frames waiting for the worker; more are dropped and counted"),
+    "queue_size": (64, f"frames waiting for the worker (at most {MAX_QUEUE_SIZE}); more are dropped and counted"),
     "idle_flush": (DEFAULT_IDLE_FLUSH, "seconds without input after which pending slots settle (0: never)"),
     "diagnostics_period": (1.0, "seconds between /diagnostics messages"),
+}
+
+# name -> (least, most): the numeric parameters' ranges, checked by check_parameters and given to ROS as the
+# parameters' descriptors' ranges (`ros2 param describe`). The window checks gap_threshold and slot_tolerance.
+RANGES = {
+    "threads": (1, MAX_THREADS),
+    "input_depth": (1, MAX_INPUT_DEPTH),
+    "queue_size": (1, MAX_QUEUE_SIZE),
+    "every_n": (1, 2**31 - 1),
+    "min_frames": (1, 2**31 - 1),
+    "max_image_pixels": (1, 2**62),
+    "mask_threshold": (0, 254),
+    "idle_flush": (0.0, MAX_SECONDS),
+    "diagnostics_period": (MIN_DIAGNOSTICS_PERIOD, MAX_SECONDS),
 }
 
 
@@ -46,19 +63,25 @@ def check_parameters(values: dict) -> None:
     """ValueError naming what is wrong with the values given (any subset of PARAMETERS); the window
     checks its own (policy, counts, interval, tolerance) when it is made."""
     positive = [n for n in ("queue_size", "threads", "max_image_pixels", "every_n", "min_frames", "input_depth")
-                if n in values and values[n] < 1]
+                if n in values and values[n] < RANGES[n][0]]
     if positive:
         raise ValueError(f"{', '.join(positive)} must be positive")
-    if "mask_threshold" in values and not 0 <= values["mask_threshold"] < 255:
+    if "mask_threshold" in values and not _within("mask_threshold", values):
         raise ValueError(f"mask_threshold is a pixel value in 0..254 (of 255), got {values['mask_threshold']}")
-    if "idle_flush" in values and not 0 <= values["idle_flush"] <= MAX_SECONDS:
+    if "idle_flush" in values and not _within("idle_flush", values):
         raise ValueError(f"idle_flush is seconds in 0..{MAX_SECONDS:g} (0: never), got {values['idle_flush']}")
-    if "diagnostics_period" in values and not MIN_DIAGNOSTICS_PERIOD <= values["diagnostics_period"] <= MAX_SECONDS:
+    if "diagnostics_period" in values and not _within("diagnostics_period", values):
         raise ValueError(f"diagnostics_period is seconds in [{MIN_DIAGNOSTICS_PERIOD:g}, {MAX_SECONDS:g}], got "
                          f"{values['diagnostics_period']}")
-    for name, most in (("threads", MAX_THREADS), ("input_depth", MAX_INPUT_DEPTH), ("queue_size", MAX_INPUT_DEPTH)):
+    for name in ("threads", "input_depth", "queue_size", "every_n", "min_frames", "max_image_pixels"):
+        most = RANGES[name][1]
         if name in values and values[name] > most:  # (threads:=100000 took minutes and 16 GB to load the model)
             raise ValueError(f"{name} must be at most {most}, got {values[name]}")
+
+
+def _within(name: str, values: dict) -> bool:
+    least, most = RANGES[name]
+    return least <= values[name] <= most  # False for NaN
 
 
 def model_window(values: dict, info) -> FrameWindow:

@@ -16,7 +16,7 @@ import os
 import sys
 from pathlib import Path
 
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 
@@ -75,13 +75,28 @@ def node_cli(prog: str, description: str, parameters, argv: list[str] | None, ep
     parser.parse_args(non_ros_args(prog, sys.argv if argv is None else argv)[1:])
 
 
-def declare_parameters(node, parameters) -> None:
+READ_ONLY_CONSTRAINT = "read once at start (read-only): restart the node to change it"
+
+
+def declare_parameters(node, parameters, ranges: dict | None = None) -> None:
     """Declares (name, default, meaning) parameters, read-only: they are read once, at start, so a
     change at run time (`ros2 param set`) is refused instead of accepted and ignored. Those with a
-    float default take ints as well (`real_time_factor:=0`, `idle_flush:=0`): read them with `number`."""
+    float default take ints as well (`real_time_factor:=0`, `idle_flush:=0`): read them with `number`.
+
+    `ranges` (name -> (least, most)) go into the descriptors that `ros2 param describe` (describe_parameters)
+    shows, as integer or floating-point ranges by the default's type. They are for the reader: the node checks
+    the values itself, with messages that say what a parameter means (rclpy would refuse an out-of-range
+    value at declaration, before that check, with its own words, and only a value of the default's type)."""
     for name, default, meaning in parameters:
         node.declare_parameter(name, default, ParameterDescriptor(
-            description=meaning, read_only=True, dynamic_typing=isinstance(default, float)))
+            description=meaning, read_only=True, dynamic_typing=isinstance(default, float),
+            additional_constraints=READ_ONLY_CONSTRAINT))
+    for name, (least, most) in (ranges or {}).items():
+        descriptor = node.describe_parameter(name)  # the node's own descriptor: what describe_parameters serves
+        if isinstance(least, float) or isinstance(most, float):
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(least), to_value=float(most))]
+        else:
+            descriptor.integer_range = [IntegerRange(from_value=int(least), to_value=int(most))]
     # rclpy ignores values given for parameters a node does not declare: a typo (`min_frame:=10`) would
     # silently leave the default. A warning, not an error: one params file may serve several nodes (`/**`).
     unknown = sorted(set(getattr(node, "_parameter_overrides", {})) - set(node._parameters))
