@@ -421,3 +421,18 @@ def test_generate_starts_without_warp_so_an_early_ctrl_c_is_one_line():
     probe = "import sys, ad_sim.generate; print(sorted({'warp', 'scipy', 'trimesh'} & set(sys.modules)))"
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and result.stdout.strip() == "[]", result.stdout + result.stderr
+
+
+def test_write_instances_gives_a_template_that_reads_back_as_the_split(tmp_path, capsys):
+    """A user's own scenes start from a benchmark split's instances, written as an instance file."""
+    from dataclasses import replace
+
+    from ad_sim.instances import benchmark, load_instance_file
+
+    out = tmp_path / "mine.yaml"
+    assert main(["--size", "tiny", "--split", "unseen", "--limit", "3", "--views", "2", "--write-instances", str(out),
+                 "--out", str(tmp_path / "bags")]) == 0
+    assert load_instance_file(out) == [replace(i, views=2) for i in benchmark("tiny", "unseen", 0)[:3]]
+    assert not (tmp_path / "bags").exists()  # nothing simulated
+    assert main(["--size", "tiny", "--write-instances", str(out)]) == 1  # an edited file is not overwritten
+    assert "exists; delete it or pass another file name" in capsys.readouterr().err

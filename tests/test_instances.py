@@ -187,3 +187,122 @@ def test_drawn_per_family_is_seeded_capped_and_in_benchmark_order():
     every = drawn_per_family("tiny", "unseen", 10**6, seed=0, families=("sand",))
     ids = [i.episode_id for i in every]
     assert ids == [e for e in pool if "-sand-" in e]  # all of the family, in benchmark order
+
+
+# ------------------------------------------------------------- instance files written by hand (audit)
+
+SOFT = "shape: sphere, material: jelly, parameters: {youngs_modulus: 1.0e+5, poissons_ratio: 0.3}"
+
+
+@pytest.mark.parametrize(
+    "name, text, message",
+    [
+        # a key given twice was silently the last one
+        ("twice.yaml", "- {shape: sphere, material: jelly, parameters: {youngs_modulus: 1.0e+5, poissons_ratio: 0.3, "
+         "poissons_ratio: 0.25}, seed: 1}\n", r"entry 0 \(sphere\): field 'parameters.poissons_ratio': given twice"),
+        ("twice.yaml", f"- {{{SOFT}, seed: 1}}\n- {{{SOFT}, seed: 2, seed: 3}}\n", r"entry 1 \(sphere\): field 'seed': given twice"),
+        ("twice.json", json.dumps([GOOD])[:-2] + ', "seed": 5}]', r"entry 0 \(sphere\): field 'seed': given twice"),
+        ("twice.json", '[{"shape": "sphere", "material": "jelly", "parameters": {"youngs_modulus": 1e5, '
+         '"poissons_ratio": 0.3, "poissons_ratio": 0.25}, "seed": 1}]', r"field 'parameters.poissons_ratio': given twice"),
+        # YAML 1.1 reads 010 as 8 and 1:30 as 90: silently another seed than the one written
+        ("octal.yaml", f"- {{{SOFT}, seed: 010}}\n", r"octal.yaml: not valid YAML: 010 is read by YAML 1.1 as the octal number 8 .* at line 1, column"),
+        ("base60.yaml", f"- {{{SOFT}, seed: 1:30}}\n", r"base60.yaml: not valid YAML: .*1:30.* base 60 .*90.* at line 1"),
+        ("base60.yaml", f"- {{{SOFT}, seed: 1, views: 1:00.5}}\n", r"not valid YAML: .*1:00.5.* base 60"),
+        # near misses name what was probably meant
+        ("near.yaml", f"- {{{SOFT.replace('sphere', 'spher')}, seed: 1}}\n", r"unknown shape 'spher'.*did you mean 'sphere'"),
+        ("near.yaml", f"- {{{SOFT.replace('jelly', 'Jelly')}, seed: 1}}\n", r"unknown material 'Jelly'.*did you mean 'jelly'"),
+        ("near.yaml", f"- {{{SOFT.replace('youngs_modulus', 'youngs_modulous')}, seed: 1}}\n",
+         r"field 'parameters.youngs_modulous': unknown parameter.*did you mean 'youngs_modulus'"),
+        ("near.yaml", f"- {{{SOFT}, sead: 1}}\n", r"unknown field\(s\) \['sead'\].*did you mean 'seed'"),
+        ("near.yaml", f"- {{{SOFT}, seed: 1, split: Train}}\n", r"field 'split'.*got 'Train'.*did you mean 'train'"),
+        # degrees where radians are expected
+        ("degrees.yaml", "- {shape: box, material: sand, parameters: {friction_angle: 30}, seed: 1}\n",
+         r"friction_angle': 30 is outside .*\(radians\); 30 degrees is 0.5236 rad"),
+        # keys of mixed types were a TypeError traceback (sorting 1 and 'colour')
+        ("mixed.yaml", f"- {{{SOFT}, seed: 1, 1: x, colour: red}}\n", r"entry 0 \(sphere\): unknown field\(s\) \[1, 'colour'\]"),
+        ("mapping.yaml", "shape: sphere\nmaterial: jelly\nparameters: {youngs_modulus: 1.0e+5, poissons_ratio: 0.3}\nseed: 1\n", r"non-empty list .*got a mapping \(write one entry as a list of one"),
+        # pose and velocity are not fields: they come from the seed
+        ("pose.yaml", f"- {{{SOFT}, seed: 1, velocity: [0, 0, -1]}}\n", r"unknown field\(s\) \['velocity'\].*drawn from 'seed'"),
+    ],
+)
+def test_hand_written_mistakes_are_one_line_errors(tmp_path, name, text, message):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message) as caught:
+        load_instance_file(path)
+    assert "\n" not in str(caught.value) and str(path) in str(caught.value)
+
+
+def test_yaml_merge_keys_and_plain_numbers_still_load(tmp_path):
+    path = tmp_path / "anchors.yaml"
+    path.write_text(f"- &soft {{{SOFT}, seed: 1}}\n- {{<<: *soft, seed: 2, episode_id: '10:30'}}\n- {{<<: *soft, seed: 0}}\n"
+                    f"- {{<<: *soft, seed: 0x10, views: 2}}\n")
+    instances = load_instance_file(path)
+    assert [(i.seed, i.views) for i in instances] == [(1, 1), (2, 1), (0, 1), (16, 2)]
+    assert instances[1].episode_id == "10:30" and instances[1].parameters == instances[0].parameters
+
+
+def test_yaml_syntax_error_is_one_line(tmp_path):
+    path = tmp_path / "broken.yaml"
+    path.write_text("- {shape: sphere, material: jelly, seed: 1\n  : x\n")
+    with pytest.raises(ValueError, match=r"broken.yaml: not valid YAML: expected ',' or '}', but got ':' at line 2") as caught:
+        load_instance_file(path)
+    assert "\n" not in str(caught.value)
+
+
+def test_duplicate_ids_name_their_entries_and_are_found_in_linear_time(tmp_path, monkeypatch):
+    import time
+
+    from ad_sim import instances as library
+
+    path = tmp_path / "many.json"
+    count = 60_000
+    path.write_text(json.dumps([{"episode_id": f"e{i}"} for i in range(count)] + [{"episode_id": "e7"}]))
+    # only the file-level checks are timed: each entry becomes a stand-in with its id
+    monkeypatch.setattr(library, "instance_from_entry", lambda entry, index, source: type("I", (), entry)())
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match=r"duplicate episode_id 'e7' in entries 7 and 60000"):
+        load_instance_file(path)
+    assert time.perf_counter() - start < 5.0  # was quadratic: ~40 s here
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".json"])
+def test_written_instance_files_read_back_bit_exactly(tmp_path, suffix):
+    from ad_sim.instances import write_instance_file
+
+    originals = benchmark("tiny", "unseen") + benchmark("tiny", "train")
+    edge = Instance(episode_id="é 🍮 yes", split="custom", shape="box", material="jelly",
+                    parameters={"youngs_modulus": 1.5e6 * (1 + 1e-12), "poissons_ratio": 0.1 + 0.2}, seed=2**64 - 1, views=3)
+    originals.append(edge)
+    path = tmp_path / f"out{suffix}"
+    write_instance_file(originals, path)
+    again = load_instance_file(path)
+    assert again == originals
+    for a, b in zip(again, originals):
+        assert [(k, v.hex()) for k, v in a.parameters.items()] == [(k, v.hex()) for k, v in b.parameters.items()]
+
+
+def test_instance_files_are_read_as_utf8_whatever_the_locale(tmp_path):
+    """Under a C locale (no UTF-8 mode) a valid UTF-8 file was refused as 'not UTF-8 text'."""
+    import os
+    import subprocess
+    import sys
+
+    path = tmp_path / "unicode.yaml"
+    path.write_text(f"- {{{SOFT}, seed: 1, episode_id: 'gelée-🍮'}}\n", encoding="utf-8")
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONCOERCECLOCALE": "0", "PYTHONUTF8": "0"}
+    code = "import sys; from ad_sim.instances import load_instance_file; print(ascii(load_instance_file(sys.argv[1])[0].episode_id))"
+    done = subprocess.run([sys.executable, "-c", code, str(path)], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == ascii("gelée-🍮")
+
+
+def test_an_instance_a_file_cannot_hold_is_not_written(tmp_path):
+    from ad_sim.instances import write_instance_file
+
+    stiff = Instance(episode_id="stiff", split="custom", shape="box", material="jelly",
+                     parameters={"youngs_modulus": 1e7, "poissons_ratio": 0.3}, seed=1)
+    path = tmp_path / "out.yaml"
+    with pytest.raises(ValueError, match=r"out.yaml \(not written\): entry 1 \(box\): field 'parameters.youngs_modulus'"):
+        write_instance_file([make(1), stiff], path)
+    assert not path.exists()

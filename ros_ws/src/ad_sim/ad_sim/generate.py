@@ -269,6 +269,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--views", type=int, help="cameras per episode (default: 4 for train, 1 otherwise)")
     parser.add_argument("--batch", type=int, help="episodes per simulator batch (default: " + ", ".join(f"{n} on {d}" for d, n in DEFAULT_BATCH.items()) + ")")
     parser.add_argument("--limit", type=int, help="use only the first n instances (quick looks)")
+    parser.add_argument("--write-instances", type=Path, metavar="FILE",
+                        help="write the instances it would generate (after --limit) as an instance file, YAML or JSON "
+                             "by FILE's suffix, and exit: a template for scenes of one's own (docs/simulator.md)")
     parser.add_argument("--max-bag-size", type=int, default=0, help=f"split .mcap files at this many bytes (0: never; else >= {MIN_SPLIT_SIZE})")
     parser.add_argument("--compression", default="zstd", choices=("zstd", "lz4", "none"), help="chunk compression (default %(default)s)")
     parser.add_argument(
@@ -282,6 +285,23 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--quiet", action="store_true",
                         help="no progress bars, no Warp start-up banner or kernel-load lines (Warp's warnings stay)")
     return parser
+
+
+def _write_instances(instances, path: Path, views: int | None) -> int:
+    from dataclasses import replace
+
+    from .instances import write_instance_file
+
+    if path.exists():  # someone's edited scenes, maybe
+        print(f"error: --write-instances {path} exists; delete it or pass another file name", file=sys.stderr)
+        return 1
+    try:
+        write_instance_file([replace(i, views=views) if views else i for i in instances], path)
+    except (OSError, ValueError) as exc:
+        print(f"error: --write-instances {path}: {exc}", file=sys.stderr)
+        return 1
+    print(f"{path}: {len(instances)} instance(s) written", file=sys.stderr)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -324,11 +344,12 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
     from .mpm import check_device
 
     try:
-        check_device(args.device)
         if args.instances:
             instances, name = load_instance_file(args.instances), args.instances.stem
         else:
             instances, name = benchmark(args.size, args.split, args.seed), args.split
+        if not args.write_instances:  # (writing them needs no Warp)
+            check_device(args.device)
     except (OSError, ValueError) as exc:
         parser.error(str(exc))
     name = args.name or name
@@ -338,6 +359,8 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
         instances = instances[: args.limit]
     if args.views is not None and args.views < 1:
         parser.error("--views must be >= 1")
+    if args.write_instances:
+        return _write_instances(instances, args.write_instances, args.views)
     if args.shards < 1:
         parser.error("--shards must be >= 1")
     index_range, count = ((args.shard[0],), args.shard[1]) if args.shard else (range(args.shards), args.shards)

@@ -216,6 +216,42 @@ _REQUIRED_FIELDS = ("shape", "material", "parameters", "seed")
 _OPTIONAL_FIELDS = ("views", "episode_id", "split")
 # Relative slack on range checks so that values written with a few digits at a range's edge pass.
 _RANGE_SLACK = 1e-9
+# What an instance file cannot set: it is drawn from the seed (the hint of an unknown-field error).
+_DRAWN_FROM_SEED = "pose, orientation, drop height, velocity, cameras and particles are drawn from 'seed'"
+
+
+def _did_you_mean(value, choices) -> str:
+    """' (did you mean 'x'?)' for the choice nearest to `value` (case ignored), or ''."""
+    import difflib
+
+    if not isinstance(value, str):
+        return ""
+    lowered = {str(c).lower(): c for c in choices}
+    close = difflib.get_close_matches(value.lower(), list(lowered), n=1, cutoff=0.6)
+    return f" (did you mean {lowered[close[0]]!r}?)" if close else ""
+
+
+class _Mapping(dict):
+    """A mapping read from an instance file; `repeated` names its keys written more than once (YAML and JSON
+    keep the last one without a word)."""
+
+    repeated: tuple = ()
+
+
+def _json_object(pairs) -> _Mapping:
+    out, repeated = _Mapping(), []
+    for key, value in pairs:
+        if key in out and key not in repeated:
+            repeated.append(key)
+        out[key] = value
+    out.repeated = tuple(repeated)
+    return out
+
+
+def _check_repeated(mapping, where: str, prefix: str = "") -> None:
+    repeated = getattr(mapping, "repeated", ())
+    if repeated:
+        raise ValueError(f"{where}: field '{prefix}{repeated[0]}': given twice in one mapping; give each field once")
 
 
 
@@ -245,12 +281,14 @@ def _finite_number(value) -> bool:
 def _validate_parameters(family: str, given, where: str) -> dict[str, float]:
     if not isinstance(given, dict):
         raise ValueError(f"{where}: field 'parameters' must be a mapping of name -> value, got {given!r}")
+    _check_repeated(given, where, "parameters.")
     ranges = materials.FAMILY_RANGES[family]
     out = {}
     for name, value in given.items():
         if name not in materials.PARAMETER_NAMES:
             raise ValueError(
-                f"{where}: field 'parameters.{name}': unknown parameter; expected names from {materials.PARAMETER_NAMES}"
+                f"{where}: field 'parameters.{name}': unknown parameter{_did_you_mean(name, materials.PARAMETER_NAMES)}; "
+                f"expected names from {materials.PARAMETER_NAMES}"
             )
         if name not in ranges:
             raise ValueError(
@@ -263,7 +301,11 @@ def _validate_parameters(family: str, given, where: str) -> dict[str, float]:
         if isinstance(spec, tuple):
             low, high, _ = spec
             if not low * (1 - _RANGE_SLACK) <= value <= high * (1 + _RANGE_SLACK):
-                unit = " (radians)" if name == "friction_angle" else ""
+                unit = ""
+                if name == "friction_angle":
+                    unit = " (radians)"
+                    if low <= math.radians(value) <= high:
+                        unit += f"; {value} degrees is {math.radians(value):.4f} rad"
                 raise ValueError(f"{where}: field 'parameters.{name}': {value} is outside {family}'s range [{low}, {high}]{unit}")
         elif not math.isclose(value, spec, rel_tol=1e-6):
             raise ValueError(f"{where}: field 'parameters.{name}': {family} fixes it at {spec}, got {value}")
@@ -280,17 +322,22 @@ def instance_from_entry(entry, index: int, source: str) -> Instance:
         raise ValueError(f"{where}: expected a mapping with fields {list(_REQUIRED_FIELDS)}, got {entry!r}")
     if "shape" in entry:
         where += f" ({entry['shape']})"
-    unknown = set(entry) - set(_REQUIRED_FIELDS) - set(_OPTIONAL_FIELDS)
+    _check_repeated(entry, where)
+    allowed = _REQUIRED_FIELDS + _OPTIONAL_FIELDS
+    unknown = sorted(set(entry) - set(allowed), key=str)
     if unknown:
-        raise ValueError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {list(_REQUIRED_FIELDS + _OPTIONAL_FIELDS)}")
+        raise ValueError(f"{where}: unknown field(s) {unknown}{_did_you_mean(unknown[0], allowed)}; allowed: "
+                         f"{list(allowed)} ({_DRAWN_FROM_SEED})")
     for name in _REQUIRED_FIELDS:
         if name not in entry:
             raise ValueError(f"{where}: missing field '{name}'")
     shape, material = entry["shape"], entry["material"]
     if not isinstance(shape, str) or shape not in shape_names():  # (a list is not even hashable)
-        raise ValueError(f"{where}: field 'shape': unknown shape {shape!r}; `generate --list-shapes` lists them")
+        raise ValueError(f"{where}: field 'shape': unknown shape {shape!r}{_did_you_mean(shape, shape_names())}; "
+                         "`generate --list-shapes` lists them")
     if not isinstance(material, str) or material not in materials.FAMILIES:
-        raise ValueError(f"{where}: field 'material': unknown material {material!r}; expected one of {materials.FAMILIES}")
+        raise ValueError(f"{where}: field 'material': unknown material {material!r}{_did_you_mean(material, materials.FAMILIES)}; "
+                         f"expected one of {materials.FAMILIES}")
     seed = entry["seed"]
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**64:
         raise ValueError(f"{where}: field 'seed': expected an integer in [0, 2^64), got {seed!r}")
@@ -299,7 +346,7 @@ def instance_from_entry(entry, index: int, source: str) -> Instance:
         raise ValueError(f"{where}: field 'views': expected a positive integer, got {views!r}")
     split = entry.get("split", "custom")
     if split not in SPLITS:
-        raise ValueError(f"{where}: field 'split': expected one of {SPLITS}, got {split!r}")
+        raise ValueError(f"{where}: field 'split': expected one of {SPLITS}, got {split!r}{_did_you_mean(split, SPLITS)}")
     episode_id = entry.get("episode_id", f"{split}-{shape}-{material}-{index:04d}")
     if not isinstance(episode_id, str) or not episode_id:
         raise ValueError(f"{where}: field 'episode_id': expected a non-empty string, got {episode_id!r}")
@@ -315,14 +362,54 @@ def instance_from_entry(entry, index: int, source: str) -> Instance:
 
 
 def _yaml_loader():
-    """SafeLoader that also reads 1.5e6 as a float (PyYAML's YAML 1.1 rules want 1.5e+6)."""
+    """SafeLoader that also reads 1.5e6 as a float (PyYAML's YAML 1.1 rules want 1.5e+6), records keys
+    given twice in a mapping (see _Mapping), and refuses YAML 1.1's octal (010 = 8) and base-60 (1:30 = 90)
+    numbers, which read silently as other numbers than the ones written."""
     import re
 
     import yaml
+    from yaml.constructor import ConstructorError, SafeConstructor
 
     class Loader(yaml.SafeLoader):
-        pass
+        def construct_yaml_map(self, node):
+            data = _Mapping()
+            yield data
+            keys, repeated = set(), []
+            for key_node, _ in node.value:  # before merge keys (<<) are flattened in: they may be overridden
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node)
+                try:
+                    if key in keys and key not in repeated:
+                        repeated.append(key)
+                    keys.add(key)
+                except TypeError:  # unhashable: construct_mapping says so
+                    pass
+            data.update(self.construct_mapping(node))
+            data.repeated = tuple(repeated)
 
+        def _unambiguous(self, node, construct):
+            text = self.construct_scalar(node)
+            digits = text.replace("_", "").lstrip("+-")
+            value = construct(self, node)
+            if ":" in digits:
+                problem = f"{text} is read by YAML 1.1 as the base 60 number {value} (write {value}; quote a name)"
+            elif re.fullmatch(r"0[0-7]+", digits):
+                problem = (f"{text} is read by YAML 1.1 as the octal number {value} (write {value}, or "
+                           f"{int(digits)} without the leading zero; quote a name)")
+            else:
+                return value
+            raise ConstructorError(None, None, problem, node.start_mark)
+
+        def construct_yaml_int(self, node):
+            return self._unambiguous(node, SafeConstructor.construct_yaml_int)
+
+        def construct_yaml_float(self, node):
+            return self._unambiguous(node, SafeConstructor.construct_yaml_float)
+
+    Loader.add_constructor("tag:yaml.org,2002:map", Loader.construct_yaml_map)
+    Loader.add_constructor("tag:yaml.org,2002:int", Loader.construct_yaml_int)
+    Loader.add_constructor("tag:yaml.org,2002:float", Loader.construct_yaml_float)
     Loader.add_implicit_resolver(
         "tag:yaml.org,2002:float",
         re.compile(
@@ -338,19 +425,32 @@ def _yaml_loader():
     return Loader
 
 
-def load_instance_file(path: str | Path) -> list[Instance]:
-    """Instances of a YAML (.yaml/.yml) or JSON (.json) file: a list of entries (SPEC 4).
+def _yaml_problem(error) -> str:
+    """A PyYAML error on one line: what is wrong and where (its own text spans several, quoting the file)."""
+    import yaml
 
-    Raises ValueError naming the entry and field of the first problem found.
+    if isinstance(error, yaml.MarkedYAMLError):
+        problem = error.problem or error.context
+        mark = error.problem_mark or error.context_mark
+        if problem and mark:
+            return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
+    return " ".join(str(error).split())
+
+
+def load_instance_file(path: str | Path) -> list[Instance]:
+    """Instances of a YAML (.yaml/.yml) or JSON (.json) file: a list of entries (SPEC 4; docs/simulator.md
+    describes the fields).
+
+    Raises ValueError naming the file, the entry and field of the first problem found, on one line.
     """
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as error:  # its own message does not name the file
         raise ValueError(f"{path}: not UTF-8 text ({error})") from None
     if path.suffix.lower() == ".json":
         try:
-            entries = json.loads(text)
+            entries = json.loads(text, object_pairs_hook=_json_object)
         except json.JSONDecodeError as error:
             raise ValueError(f"{path}: not valid JSON: {error}") from None
     elif path.suffix.lower() in (".yaml", ".yml"):
@@ -359,14 +459,50 @@ def load_instance_file(path: str | Path) -> list[Instance]:
         try:
             entries = yaml.load(text, Loader=_yaml_loader())
         except yaml.YAMLError as error:
-            raise ValueError(f"{path}: not valid YAML: {error}") from None
+            raise ValueError(f"{path}: not valid YAML: {_yaml_problem(error)}") from None
     else:
         raise ValueError(f"{path}: instance files end in .yaml, .yml or .json")
     if not isinstance(entries, list) or not entries:
-        raise ValueError(f"{path}: expected a non-empty list of entries (shape, material, parameters, seed)")
+        got = "a mapping (write one entry as a list of one: '- shape: ...')" if isinstance(entries, dict) else repr(entries)
+        raise ValueError(f"{path}: expected a non-empty list of entries (shape, material, parameters, seed), got {got}")
     instances = [instance_from_entry(entry, i, str(path)) for i, entry in enumerate(entries)]
-    ids = [instance.episode_id for instance in instances]
-    duplicates = sorted({i for i in ids if ids.count(i) > 1})
-    if duplicates:
-        raise ValueError(f"{path}: duplicate episode_id(s) {duplicates}")
+    first: dict[str, int] = {}
+    for index, instance in enumerate(instances):
+        earlier = first.setdefault(instance.episode_id, index)
+        if earlier != index:
+            raise ValueError(f"{path}: duplicate episode_id {instance.episode_id!r} in entries {earlier} and {index}; "
+                             "episode ids must be unique")
     return instances
+
+
+def instance_entry(instance: Instance) -> dict:
+    """The instance-file entry of an instance: what load_instance_file reads back as an equal Instance."""
+    return {
+        "episode_id": instance.episode_id,
+        "split": instance.split,
+        "shape": instance.shape,
+        "material": instance.material,
+        "parameters": {name: float(value) for name, value in instance.parameters.items()},
+        "seed": int(instance.seed),
+        "views": int(instance.views),
+    }
+
+
+def write_instance_file(instances, path: str | Path) -> None:
+    """Writes instances as an instance file, JSON or YAML by the file's suffix; floats are written with
+    Python's repr, so they read back bit-exactly. An instance the file could not hold (parameters outside the
+    family's ranges, say, as a re-simulated prediction may have) raises load_instance_file's error, and
+    nothing is written."""
+    path = Path(path)
+    entries = [instance_entry(instance) for instance in instances]
+    for index, entry in enumerate(entries):
+        instance_from_entry(entry, index, f"{path} (not written)")
+    if path.suffix.lower() == ".json":
+        text = json.dumps(entries, indent=1, ensure_ascii=False) + "\n"
+    elif path.suffix.lower() in (".yaml", ".yml"):
+        import yaml
+
+        text = yaml.safe_dump(entries, sort_keys=False, allow_unicode=True, width=1000)
+    else:
+        raise ValueError(f"{path}: instance files end in .yaml, .yml or .json")
+    path.write_text(text, encoding="utf-8")
