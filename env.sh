@@ -18,7 +18,8 @@ _ad_made_at="$(sed -n 's/^_colcon_prefix_sh_COLCON_CURRENT_PREFIX="\(.*\)"$/\1/p
 if [ -n "$_ad_made_at" ] && ! [ "$_ad_made_at" -ef "$_ad_root/ros_ws/install" ]; then
     _ad_moved="ros_ws/install was built in ${_ad_made_at%/ros_ws/install}, not in this checkout"
 else
-    _ad_made_at="$(sed -nE "s/^ *(export +)?VIRTUAL_ENV=[\"']?([^\"']*)[\"']?$/\2/p" "$_ad_venv/bin/activate" 2>/dev/null | head -n 1 || true)"
+    # (not a command substitution: newer Pythons' activate first sets it to $(cygpath PATH), for Cygwin)
+    _ad_made_at="$(sed -nE "s/^ *(export +)?VIRTUAL_ENV=[\"']?([^\"'\$]*)[\"']?$/\2/p" "$_ad_venv/bin/activate" 2>/dev/null | head -n 1 || true)"
     if [ -n "$_ad_made_at" ] && ! [ "$_ad_made_at" -ef "$_ad_venv" ]; then
         _ad_moved="the venv $_ad_venv was made at $_ad_made_at"
     fi

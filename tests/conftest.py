@@ -87,3 +87,13 @@ def rclpy_context(ros_domain_id: int):
         yield context
     finally:
         context.try_shutdown()
+
+
+@pytest.fixture
+def ros(ros_domain_id: int):
+    """(context, executor): an rclpy context on this test's domain with an executor spinning in a background
+    thread, as in a running system (estimator_ros.ros_context)."""
+    from estimator_ros import ros_context
+
+    with ros_context(ros_domain_id) as (context, executor):
+        yield context, executor

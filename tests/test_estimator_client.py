@@ -20,7 +20,7 @@ import ad_estimator.node as estimator_node
 from ad_estimator.model import BUNDLED_MODEL
 from ad_estimator.node import MAX_CLIP_FRAMES, EstimatorNode
 from estimator_models import build_streaming_model, falling_masks
-from estimator_ros import image_msg, ros_context, tracked, wait_for
+from estimator_ros import image_msg, tracked, wait_for
 
 pytestmark = pytest.mark.ros
 DT = 25_000_000
@@ -40,12 +40,6 @@ FIXED = {"sand": {"youngs_modulus": 1e5, "poissons_ratio": 0.3}}
 @pytest.fixture(scope="module")
 def test_model(tmp_path_factory):
     return build_streaming_model(tmp_path_factory.mktemp("client_models"))
-
-
-@pytest.fixture
-def ros(ros_domain_id):
-    with ros_context(ros_domain_id) as (context, executor):
-        yield context, executor
 
 
 def start(ros, model_path=BUNDLED_MODEL, **params):

@@ -301,3 +301,16 @@ def test_an_instance_a_file_cannot_hold_is_not_written(tmp_path):
     with pytest.raises(ValueError, match=r"out.yaml \(not written\): entry 1 \(box\): field 'parameters.youngs_modulus'"):
         write_instance_file([make(1), stiff], path)
     assert not path.exists()
+
+
+def test_written_ids_that_the_loader_reads_as_numbers_are_quoted(tmp_path):
+    """The loader reads 1e5 (no sign in the exponent) as a float, PyYAML's dumper does not: an id like '1e5' was
+    written unquoted and the file did not read back ("field 'episode_id': expected a non-empty string")."""
+    from ad_sim.instances import write_instance_file
+
+    originals = [Instance(episode_id=name, split="custom", shape="box", material="jelly",
+                          parameters={"youngs_modulus": 1e5, "poissons_ratio": 0.3}, seed=i)
+                 for i, name in enumerate(["1e5", "2.5e3", "1_000E3", "-4e2", ".5e1", "10:30", "010", "yes"])]
+    path = tmp_path / "ids.yaml"
+    write_instance_file(originals, path)
+    assert load_instance_file(path) == originals

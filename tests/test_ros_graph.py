@@ -15,7 +15,8 @@ from sensor_msgs.msg import Image
 
 from ad_estimator.parameters import MAX_QUEUE_SIZE, RANGES
 from estimator_models import build_streaming_model, falling_masks
-from estimator_ros import image_msg, ros_context, wait_for
+import ros_procs
+from estimator_ros import image_msg, wait_for
 
 pytestmark = pytest.mark.ros
 DT = 25_000_000
@@ -24,12 +25,6 @@ DT = 25_000_000
 @pytest.fixture(scope="module")
 def model_path(tmp_path_factory):
     return build_streaming_model(tmp_path_factory.mktemp("graph_models"))
-
-
-@pytest.fixture
-def ros(ros_domain_id):
-    with ros_context(ros_domain_id) as (context, executor):
-        yield context, executor
 
 
 _started = []
@@ -64,8 +59,7 @@ def read_until(proc, text, timeout=60.0):
 
 def stop(proc, sig=signal.SIGINT) -> str:
     """Signal the node; its whole output once it exited."""
-    proc.send_signal(sig)
-    proc.wait(timeout=30)
+    ros_procs.stop(proc, sig)
     proc.reader.join(timeout=10)
     return "".join(proc.lines)
 
@@ -100,19 +94,6 @@ def test_a_signal_after_the_last_frame_loses_no_estimate(ros, model_path, sig):
     assert wait_for(lambda: len(estimates) == 2, timeout=10), out
     assert estimates[1].frames_used == 20 and not estimates[1].complete
     assert "'published': 2" in out
-
-
-def test_queue_size_has_a_sensible_bound(model_path, ros_domain_id):
-    """queue_size could be anything up to 10**6 frames: a queue that only holds memory (a frame waits whole, up to
-    max_image_pixels) and estimates minutes late. Past MAX_QUEUE_SIZE it is refused in one line at start."""
-    proc = run_node("-p", f"model_path:={model_path}", "-p", f"queue_size:={MAX_QUEUE_SIZE + 1}")
-    read_until(proc, "queue_size")
-    proc.wait(timeout=30)
-    proc.reader.join(timeout=10)
-    out = "".join(proc.lines)
-    assert proc.returncode == 1 and f"queue_size must be at most {MAX_QUEUE_SIZE}, got {MAX_QUEUE_SIZE + 1}" in out, out
-    assert "Traceback" not in out
-    assert MAX_QUEUE_SIZE <= 10_000
 
 
 def test_describe_parameters_gives_descriptions_ranges_and_why_they_are_read_only(ros, model_path):
@@ -165,3 +146,44 @@ def test_a_late_joiner_asking_for_transient_local_estimates_is_told_the_topic_an
     (warning,) = [line for line in out.splitlines() if "QoS" in line]
     assert "/robot1/ad_estimator/estimate" in warning and "(durability)" in warning, warning
     assert "subscribe volatile" in warning and "~/estimate service" in warning, warning
+
+
+def test_frames_delivered_but_not_yet_taken_at_the_signal_are_estimated(ros, model_path):
+    """A signal while frames sit in the subscription's DDS cache, delivered (acknowledged) but not yet taken by the
+    executor (busy, or woken a moment later): finish() set the node closing at once, so on_image ignored each of
+    them as the executor took them, and the last estimate was lost after all. Now finish() first takes what has
+    arrived, until the input is quiet, as the recorder does before it closes its bag."""
+    from ad_estimator.node import EstimatorNode, make_executor
+    from estimator_ros import tracked
+    from rclpy.parameter import Parameter
+
+    context, executor = ros
+    topic = "/graph_test/cached_mask"
+    overrides = {"model_path": str(model_path), "reliable": True, "output_policy": "anytime", "min_frames": 15,
+                 "every_n": 100, "idle_flush": 30.0, "input_depth": 100}
+    node = tracked(EstimatorNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
+                                 cli_args=["--ros-args", "-r", f"mask:={topic}"]))
+    client = Node("graph_cache_client", context=context)
+    estimates = []
+    client.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append,
+                               QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    publisher = client.create_publisher(Image, topic, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    executor.add_node(client)
+    assert wait_for(lambda: publisher.get_subscription_count() > 0 and node.publisher.get_subscription_count() > 0,
+                    timeout=30)
+    for k, mask in enumerate(falling_masks(count=20, seed=4)):  # the node's executor does not spin yet
+        publisher.publish(image_msg(mask, 10**9 + k * DT))
+    assert publisher.wait_for_all_acked(Duration(seconds=10))  # every frame is in the node's DDS cache
+    own = make_executor(context)
+    own.add_node(node)
+    spinner = threading.Thread(target=own.spin, daemon=True)
+    spinner.start()  # the executor wakes as the signal comes
+    try:
+        assert node.finish()
+        counters = node.statistics()
+        assert counters["received"] == 20 and counters["published"] == 2, counters
+        assert wait_for(lambda: len(estimates) == 2, timeout=10)
+        assert [e.frames_used for e in estimates] == [15, 20]
+    finally:
+        own.shutdown(timeout_sec=1.0)
+        spinner.join(timeout=2.0)

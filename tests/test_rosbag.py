@@ -769,3 +769,67 @@ def test_a_split_that_cannot_open_the_next_file_loses_no_message_it_said_it_wrot
             writer.close()
         writer.close()
         assert len(list(BagReader(path, raw=True))) == returned == writer.message_count
+
+
+def _failing_on(opcode: int):
+    """_UnbufferedFile.write raising ENOSPC for the record group that starts with `opcode`, once armed."""
+    write = rosbag._UnbufferedFile.write
+    armed = []
+
+    def failing(self, data):
+        if armed and bytes(data[:1]) == bytes([opcode]):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return write(self, data)
+
+    return failing, armed
+
+
+def test_a_failure_after_the_last_chunk_was_written_loses_none_of_its_messages(tmp_path, monkeypatch):
+    """close() writes the chunk in progress, then the data end and the summary. When the disk fills up after the
+    chunk (at the data end), the chunk's messages are in the file, complete, yet `lost` counted them and the counts
+    (metadata.yaml, a recorder's `written`) left them out: the bag held more than it said."""
+    failing, armed = _failing_on(rosbag.Opcode.DATA_END)
+    monkeypatch.setattr(rosbag._UnbufferedFile, "write", failing)
+    data = bytes(4) + bytes(400)
+    writer = BagWriter(tmp_path / "bag", chunk_size=1_000_000)  # every message in the chunk close() writes
+    writer.add_topic("/p", "sensor_msgs/msg/PointCloud2")
+    for stamp in range(20):
+        writer.write("/p", stamp, data)
+    armed.append(1)
+    with pytest.raises(rosbag.BagWriteError, match="Writing stopped"):
+        writer.close()
+    with pytest.warns(UserWarning, match="truncated"):
+        recovered = list(BagReader(tmp_path / "bag", recover=True, raw=True))
+    assert len(recovered) == 20
+    assert sum(writer.lost.values()) == 0 and writer.message_count == 20
+    metadata = yaml.safe_load((tmp_path / "bag" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert metadata["message_count"] == 20
+
+
+def test_a_chunk_written_by_a_topic_added_later_is_not_counted_lost(tmp_path, monkeypatch):
+    """Adding a topic registers its channel in the chunk in progress, which can fill it and write it: the messages
+    in it are in the file, but `lost` still counted them when the next write failed."""
+    failing, armed = _failing_on(rosbag.Opcode.CHUNK)
+    monkeypatch.setattr(rosbag._UnbufferedFile, "write", failing)
+    data = bytes(4) + bytes(400)
+    writer = BagWriter(tmp_path / "bag", chunk_size=5000, compression="none")
+    writer.add_topic("/p", "sensor_msgs/msg/PointCloud2")
+    file = tmp_path / "bag" / "bag_0.mcap"
+    while file.stat().st_size < 100:  # up to the first chunk (with the schema and channel): the header only before
+        writer.write("/p", writer.message_count, data)
+    # fill the next chunk up to just under its size, then add a topic: its channel record writes the chunk
+    size, count = file.stat().st_size, writer.message_count
+    for _ in range(11):  # 11 messages of ~430 bytes: under 5000
+        writer.write("/p", writer.message_count, data)
+    assert file.stat().st_size == size
+    writer.add_topic("/q", "sensor_msgs/msg/PointCloud2")  # its channel pushes the chunk over its size
+    assert file.stat().st_size > size, "the channel did not write the chunk"
+    armed.append(1)
+    writer.write("/q", writer.message_count, data)
+    with pytest.raises(rosbag.BagWriteError):
+        writer.flush()
+    writer.close()
+    with pytest.warns(UserWarning, match="truncated"):
+        recovered = list(BagReader(tmp_path / "bag", recover=True, raw=True))
+    assert len(recovered) == count + 11 == writer.message_count
+    assert writer.lost == {"/q": 1}

@@ -231,3 +231,25 @@ def test_colcon_names_where_it_built_the_workspace_as_env_sh_reads_it():
     lines = [line for line in (install / "local_setup.sh").read_text().splitlines() if line.startswith(prefix)]
     assert len(lines) == 1 and lines[0][len(prefix)] == lines[0][-1] == '"', lines
     assert os.path.samefile(lines[0][len(prefix) + 1:-1], install)  # the checkout may be reached through a link
+
+
+def test_env_sh_reads_the_venv_path_of_a_newer_pythons_activate(tmp_path):
+    """CPython 3.12.8 and 3.13.1 on (CVE-2024-9287) write the venv's path shell-quoted, so unquoted when it needs no
+    quotes, and first in a Cygwin branch: `VIRTUAL_ENV=$(cygpath /path)`. env.sh took that line for the path the venv
+    was made at and refused every checkout set up with such a Python as "moved or copied"."""
+    b = _checkout_as_setup_leaves_it(tmp_path / "b")
+    activate = b / ".venv" / "bin" / "activate"
+    venv = b / ".venv"
+    text = activate.read_text()
+    assert f'VIRTUAL_ENV="{venv}"\n' in text
+    activate.write_text(text.replace(f'VIRTUAL_ENV="{venv}"\n', (
+        'case "$(uname)" in\n'
+        '    CYGWIN*|MSYS*|MINGW*)\n'
+        f'        VIRTUAL_ENV=$(cygpath {venv})\n'
+        '        export VIRTUAL_ENV\n'
+        '        ;;\n'
+        '    *)\n'
+        f'        export VIRTUAL_ENV={venv}\n'
+        '        ;;\n'
+        'esac\n')))
+    assert _source_env(b).stdout == f"rc=0 code={b} venv={venv}\n"

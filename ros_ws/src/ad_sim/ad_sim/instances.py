@@ -410,7 +410,16 @@ def _yaml_loader():
     Loader.add_constructor("tag:yaml.org,2002:map", Loader.construct_yaml_map)
     Loader.add_constructor("tag:yaml.org,2002:int", Loader.construct_yaml_int)
     Loader.add_constructor("tag:yaml.org,2002:float", Loader.construct_yaml_float)
-    Loader.add_implicit_resolver(
+    _add_float_resolver(Loader)
+    return Loader
+
+
+def _add_float_resolver(cls) -> None:
+    """Floats as the instance-file loader reads them (1.5e6 too): on its Loader, and on the Dumper of
+    write_instance_file, which then quotes a string that would read back as one (an id '1e5')."""
+    import re
+
+    cls.add_implicit_resolver(
         "tag:yaml.org,2002:float",
         re.compile(
             r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
@@ -422,7 +431,6 @@ def _yaml_loader():
         ),
         list("-+0123456789."),
     )
-    return Loader
 
 
 def _yaml_problem(error) -> str:
@@ -502,7 +510,11 @@ def write_instance_file(instances, path: str | Path) -> None:
     elif path.suffix.lower() in (".yaml", ".yml"):
         import yaml
 
-        text = yaml.safe_dump(entries, sort_keys=False, allow_unicode=True, width=1000)
+        class Dumper(yaml.SafeDumper):
+            pass
+
+        _add_float_resolver(Dumper)
+        text = yaml.dump(entries, Dumper=Dumper, sort_keys=False, allow_unicode=True, width=1000)
     else:
         raise ValueError(f"{path}: instance files end in .yaml, .yml or .json")
     path.write_text(text, encoding="utf-8")

@@ -283,6 +283,9 @@ class _UnbufferedFile:
 
     def __init__(self, path: Path):
         self._file = open(path, "xb", buffering=0)  # noqa: SIM115 (closed in close())
+        # Chunk records written whole: the MCAP writer hands each one over alone (it writes out what it holds
+        # before a chunk record, and the chunk record before its message indexes).
+        self.chunks = 0
 
     def write(self, data: bytes) -> int:
         """All of `data` or, when writing fails (a full disk), none of it: the part written is cut off
@@ -298,6 +301,8 @@ class _UnbufferedFile:
                 self._file.truncate(start)
                 self._file.seek(start)
             raise
+        if len(data) and data[0] == Opcode.CHUNK:
+            self.chunks += 1
         return len(data)
 
     def tell(self) -> int:
@@ -376,6 +381,7 @@ class BagWriter:
         self._error = ""  # why writing stopped (BagWriteError), after a failed write
         self._unreported = False  # the failure was not raised yet
         self._pending: dict[str, int] = {}  # topic -> messages of the current file not yet in a written chunk
+        self._chunks_seen = 0  # the stream's chunk count when _pending was last settled (_settle)
         self.lost: dict[str, int] = {}  # topic -> messages lost by a failed write (not in the counts)
         try:
             self._open_next_file()
@@ -423,31 +429,33 @@ class BagWriter:
                            f"not an MCAP time (0 to {MAX_MCAP_TIME} ns)")
         if not isinstance(message, (bytes, bytearray, memoryview)):
             message = self._encode(info.schema, message)
-        with self._writing():
-            written = self._stream.tell()
-            self._mcap.add_message(
-                channel_id=self._channel_ids[topic],
-                log_time=log_time_ns,
-                data=bytes(message),
-                publish_time=publish_time_ns,
-                sequence=info.message_count,
-            )
-            info.message_count += 1
-            self._files[-1].add(log_time_ns)
-            if self._stream.tell() != written:  # the chunk in progress, this message included, was written
-                self._pending.clear()
-            else:
+        try:
+            with self._writing():
+                self._settle()  # (a chunk written since the last message, by a topic's channel, say)
+                # Counted before it is written: a failure after its chunk was written (at the message indexes,
+                # at a split's summary) leaves it in the file, a failure before that among the lost (_fail).
+                sequence = info.message_count
+                info.message_count += 1
+                self._files[-1].add(log_time_ns)
                 self._pending[topic] = self._pending.get(topic, 0) + 1
-        if self.max_bag_size and self._stream.tell() >= self.max_bag_size:
-            try:
-                with self._writing():
+                self._mcap.add_message(
+                    channel_id=self._channel_ids[topic],
+                    log_time=log_time_ns,
+                    data=bytes(message),
+                    publish_time=publish_time_ns,
+                    sequence=sequence,
+                )
+                self._settle()
+                if self.max_bag_size and self._stream.tell() >= self.max_bag_size:
                     self._close_file()
                     self._open_next_file()
-            except BagWriteError:
-                if self.lost:  # this message was lost with the last chunk of the file
-                    self.lost[topic] -= 1
-                    raise
-                self._unreported = True  # it is in a complete file: the next write (or close) says why it stopped
+        except BagWriteError as exc:
+            if exc.__cause__ is None:  # writing had stopped before: nothing was counted
+                raise
+            if self.lost.get(topic):  # this message was lost with the chunk in progress: its write fails
+                self.lost[topic] -= 1
+                raise
+            self._unreported = True  # it is in a complete chunk: the next write (or close) says why it stopped
 
     def flush(self) -> None:
         """Close the chunk in progress so that it survives a kill of this process."""
@@ -488,8 +496,16 @@ class BagWriter:
         except OSError as exc:
             raise self._fail(exc) from exc
 
+    def _settle(self) -> None:
+        """The pending messages are all in the chunk in progress: once the stream has written a chunk since they
+        were counted, they are in the file."""
+        if self._stream.chunks != self._chunks_seen:
+            self._pending.clear()
+            self._chunks_seen = self._stream.chunks
+
     def _fail(self, exc: OSError) -> BagWriteError:
         current = self.path / self._files[-1].path
+        self._settle()
         for topic, count in self._pending.items():  # the counts say what the files hold
             self._topics[topic].message_count -= count
         self._files[-1].message_count -= sum(self._pending.values())
@@ -518,6 +534,7 @@ class BagWriter:
     def _open_next_file(self) -> None:
         name = f"{self.path.name}_{len(self._files)}.mcap"
         self._stream = _UnbufferedFile(self.path / name)
+        self._chunks_seen = 0
         self._files.append(_FileStats(name))
         self._mcap = Writer(self._stream, chunk_size=self.chunk_size, compression=self._compression)
         self._mcap.start(profile="ros2", library="ad_sim.rosbag")
