@@ -466,3 +466,28 @@ def test_runtime_requirements_cover_every_import():
     assert "libigl" in needed and "onnxruntime" in needed  # the scan found the imports
     missing = {name for name in needed if name.lower() not in runtime}
     assert not missing, f"imported but not in requirements-runtime.txt: {sorted(missing)}"
+
+
+# rosdep keys (rosdistro's python.yaml) of the libraries that have one; those without come from
+# requirements-runtime.txt alone (test_runtime_requirements_cover_every_import).
+ROSDEP_KEYS = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "python3-yaml", "tqdm": "python3-tqdm",
+               "cv2": "python3-opencv", "matplotlib": "python3-matplotlib"}
+NO_ROSDEP_KEY = {"onnxruntime", "warp", "trimesh", "igl", "mcap", "mcap_ros2"}
+
+
+@pytest.mark.parametrize("package", ["ad_sim", "ad_estimator"])
+def test_package_xml_declares_everything_the_package_imports(package):
+    """`rosdep install --from-paths ros_ws/src` on a robot installs what package.xml declares: ad_sim imported tqdm
+    and ad_estimator matplotlib (evaluate's plots) without declaring them."""
+    manifest = ElementTree.parse(REPO_ROOT / "ros_ws/src" / package / "package.xml").getroot()
+    declared = {e.text for tag in ("depend", "exec_depend") for e in manifest.iter(tag)}
+    distributions = importlib.metadata.packages_distributions()
+    for module in sorted(_third_party_imports(REPO_ROOT / "ros_ws/src" / package / package) - {package}):
+        ros_package = module in ("ad_sim", "ad_msgs") or any(
+            owner.startswith("ros-") for owner in distributions.get(module, []))
+        if ros_package:
+            assert module in declared, f"{package} imports the ROS package {module}: add <exec_depend>{module}"
+        elif module in ROSDEP_KEYS:
+            assert ROSDEP_KEYS[module] in declared, f"{package} imports {module}: add <exec_depend>{ROSDEP_KEYS[module]}"
+        else:
+            assert module in NO_ROSDEP_KEY, f"{package} imports {module}: declare its rosdep key, or list it here"
