@@ -46,8 +46,12 @@ from ad_estimator.window import WindowOutput, clip_output, clip_stamps, ns_to_st
 from ad_sim.dds import declare_parameters, node_cli, number
 
 LOG_THROTTLE_S = 5.0
-FINISH_TIMEOUT_S = 2.0  # at shutdown: for the frames delivered to take, the queued ones' estimates, their delivery
-FINISH_QUIET_S = 0.3  # at shutdown: the input is taken once no frame came for this long (as the recorder drains)
+# At shutdown, in all (under the 5 s a launch system waits between SIGINT and SIGTERM): taking the frames delivered
+# (until none came for FINISH_QUIET_S, at most FINISH_TAKE_S: a live camera never pauses), estimating the queued
+# ones and flushing the window, then their delivery.
+FINISH_TIMEOUT_S = 3.0
+FINISH_QUIET_S = 0.3
+FINISH_TAKE_S = 1.0
 MAX_CLIP_FRAMES = 1000
 # The executor thread runs much Python between callbacks; with the default 5 ms GIL switch
 # interval the inference worker can wait that long for a frame just queued (measured: p95
@@ -525,21 +529,21 @@ class EstimatorNode(Node):
 
     def finish(self, timeout: float = FINISH_TIMEOUT_S) -> bool:
         """The end of the input (SIGINT, SIGTERM): the frames delivered so far are taken (they may still wait in the
-        subscription for the executor, spinning meanwhile in another thread: until none has come for
-        FINISH_QUIET_S) and estimated, later ones are ignored; the window is flushed as when the input goes idle
-        (unless idle_flush is 0), and the estimates' delivery to reliable subscribers is awaited; each step for up
-        to `timeout` s. Without this the last episode's estimate was lost at shutdown whenever it was still queued
-        or waited for the idle flush (a launch file stopping the estimator as its camera or bag replay ended).
-        True if all of it was done."""
-        deadline = time.monotonic() + timeout
-        seen, quiet_since = self.counters["received"], time.monotonic()
-        while time.monotonic() - quiet_since < FINISH_QUIET_S and time.monotonic() < deadline:
+        subscription for the executor, spinning meanwhile in another thread) and estimated, later ones are ignored;
+        the window is flushed as when the input goes idle (unless idle_flush is 0), and the estimates' delivery to
+        reliable subscribers is awaited; all of it within `timeout` s. Without this the last episode's estimate was
+        lost at shutdown whenever it was still queued or waited for the idle flush (a launch file stopping the
+        estimator as its camera or bag replay ended). True if all of it was done."""
+        start = time.monotonic()
+        deadline = start + timeout
+        seen, quiet_since = self.counters["received"], start
+        while time.monotonic() - quiet_since < FINISH_QUIET_S and time.monotonic() < min(deadline, start + FINISH_TAKE_S):
             time.sleep(0.01)
             if self.counters["received"] != seen:
                 seen, quiet_since = self.counters["received"], time.monotonic()
         self._closing.set()
-        done = self.worker.is_alive() and self._finished.wait(timeout)
-        return self.publisher.wait_for_all_acked(Duration(seconds=timeout)) and done
+        done = self.worker.is_alive() and self._finished.wait(max(0.0, deadline - time.monotonic()))
+        return self.publisher.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic()))) and done
 
     def destroy_node(self) -> None:
         self._stop.set()
