@@ -80,7 +80,10 @@ def no_simulation(monkeypatch):
     (["--limit", "2", "--shards", "3"], "--shards 3: 2 instance(s) leave shard 2 of 3 empty; use at most 2 shards"),
     (["--limit", "2", "--shard", "2/3"], "--shard 2/3: 2 instance(s) leave shard 2 of 3 empty"),
     (["--instances", "BINARY"], "BINARY: not UTF-8 text ("),
-], ids=["batch-negative", "batch-0", "seed", "max-bag-size", "max-bag-size-small", "name-escapes", "name-dotdot", "shards", "shard", "utf-8"])
+    (["--views", "0"], "--views must be in 1..16, got 0"),
+    (["--views", "100000000"], "--views must be in 1..16, got 100000000"),  # was taken: out of memory making cameras
+], ids=["batch-negative", "batch-0", "seed", "max-bag-size", "max-bag-size-small", "name-escapes", "name-dotdot", "shards", "shard", "utf-8",
+        "views-0", "views-huge"])
 def test_numeric_name_and_shard_count_errors_name_the_option(bad, said, tmp_path, capsys):
     """--batch -1 once wrote an empty shard marked done (0 was the default), --shards above the instances
     an empty bag marked done, --name x/../.. wrote outside --out; --seed -1 failed in NumPy without naming

@@ -140,7 +140,8 @@ GOOD = {"shape": "sphere", "material": "plasticine", "parameters": {"youngs_modu
         ({"material": "sand", "parameters": {"friction_angle": 30.0}}, r"parameters.friction_angle': 30.0 is outside .* \(radians\)"),
         ({"material": "sand", "parameters": {"friction_angle": 0.5, "youngs_modulus": 2e5}}, r"sand fixes it at 100000.0"),
         ({"seed": -1}, r"field 'seed': expected an integer"),
-        ({"views": 0}, r"field 'views': expected a positive integer"),
+        ({"views": 0}, r"field 'views': expected an integer in \[1, 16\], got 0"),
+        ({"views": 100000000}, r"field 'views': expected an integer in \[1, 16\], got 100000000"),  # failed later, out of memory
         ({"colour": "red"}, r"unknown field\(s\) \['colour'\]"),
         ({"seed": None}, r"field 'seed'"),
         # wrong types and huge ints were tracebacks (an unhashable list, a float overflow)

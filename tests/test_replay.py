@@ -20,6 +20,7 @@ from sensor_msgs.msg import Image
 
 from ad_estimator import evaluate, replay
 from ad_estimator.model import BUNDLED_MODEL
+from ad_sim import messages
 from ad_sim.rosbag import BagError, BagReader
 from estimator_bags import instance_dict, write_test_bag
 from estimator_models import build_streaming_model
@@ -175,8 +176,8 @@ def test_replay_of_a_bag_with_an_unusable_metadata_yaml(test_bag, tmp_path, ros_
      "reliability 'system_default', durability ['x']", ("reliable", "volatile", "keep_last", 5)),
     # malformed as a whole: the topic's default (ground truth latched, as the simulator offers it)
     (INSTANCE_TOPIC, "garbage", "not a list of profiles ('garbage')",
-     ("reliable", "transient_local", "keep_last", 100)),
-    (INSTANCE_TOPIC, ["x"], "not a list of profiles (['x'])", ("reliable", "transient_local", "keep_last", 100)),
+     ("reliable", "transient_local", "keep_last", 1)),
+    (INSTANCE_TOPIC, ["x"], "not a list of profiles (['x'])", ("reliable", "transient_local", "keep_last", 1)),
     (MASK_TOPIC, {"depth": 5}, "not a list of profiles ({'depth': 5})", ("reliable", "volatile", "keep_last", 100)),
     (MASK_TOPIC, "- history: [keep_last\n  depth: 'x", "not YAML (expected ',' or ']', but got ':')",
      ("reliable", "volatile", "keep_last", 100)),
@@ -214,9 +215,10 @@ def test_what_ros2_bag_record_writes_for_a_discovered_publisher_takes_the_defaul
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         topics = replay.recorded_topics(BagReader(sample_bag, raw=True))
-    for _, qos in topics.values():
+    for topic, (_, qos) in topics.items():
         assert (qos.reliability, qos.durability, qos.history, qos.depth) == (
-            ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.TRANSIENT_LOCAL, HistoryPolicy.KEEP_LAST, 100)
+            ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.TRANSIENT_LOCAL, HistoryPolicy.KEEP_LAST,
+            messages.topic_qos(topic)["depth"])
 
 
 def test_a_topic_metadata_yaml_leaves_out_is_replayed_with_the_files_type(sample_bag, ros_domain_id):
@@ -233,14 +235,14 @@ def test_a_topic_metadata_yaml_leaves_out_is_replayed_with_the_files_type(sample
 def test_replay_of_a_bag_with_unusable_recorded_qos_plays_it_all(sample_bag, ros_domain_id):
     """The command line: a warning line for that topic, then the whole bag (it was refused, naming no topic)."""
     metadata_file = sample_bag / "metadata.yaml"
-    metadata_file.write_text(metadata_file.read_text().replace("history: keep_last\n        depth: 100",
-                                                               "history: system_default\n        depth: 0", 1))
+    metadata_file.write_text(metadata_file.read_text().replace("history: keep_last\n        depth: 1\n",
+                                                               "history: system_default\n        depth: 0\n", 1))
     proc = run("ad_estimator.replay", str(sample_bag), "--quiet", "--delay", "0", "--rate", "100")
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0 and out.splitlines() == [
         f"warning: unusable QoS for {INSTANCE_TOPIC} in metadata.yaml (history 'system_default', depth 0); "
         "replaying it as "
-        "reliable, transient_local, keep_last, depth 100 (the default for what was unusable)",
+        "reliable, transient_local, keep_last, depth 1 (the default for what was unusable)",
         f"replay: published 306 messages from {sample_bag}"], out
 
 
@@ -278,7 +280,6 @@ def test_replay_that_hears_no_subscriber_says_what_to_check(test_bag, ros_domain
 
 
 def test_replay_of_a_bag_without_messages_says_so(tmp_path, ros_domain_id):
-    from ad_sim import messages
     from ad_sim.rosbag import BagWriter
 
     with BagWriter(tmp_path / "empty") as writer:
@@ -322,7 +323,6 @@ def test_replay_interrupted_in_its_wait_for_acknowledgements_says_all_was_publis
 
 def test_replay_waits_out_a_gap_too_long_for_one_sleep(tmp_path, ros_domain_id):
     """Log times 317 years apart (past what time.sleep takes, OverflowError): the replay waits until stopped."""
-    from ad_sim import messages
     from ad_sim.rosbag import BagWriter
 
     with BagWriter(tmp_path / "gap") as writer:

@@ -168,7 +168,10 @@ def test_single_instance_from_parameters_and_bad_parameters(ros_domain_id, tmp_p
 
 @pytest.mark.parametrize("executable, params, expected", [
     ("node", {"seed": 1.5}, "Trying to set parameter 'seed' to '1.5' of type 'DOUBLE', expecting type 'INTEGER'"),
-    ("node", {"views": -1}, "views must be >= 0, got -1"),
+    ("node", {"views": -1}, "views must be in 0..16 (0: the instances' own), got -1"),
+    # no upper bound: 100000000 views were taken and the node ran out of memory making its publishers
+    ("node", {"views": 100000000}, "views must be in 0..16 (0: the instances' own), got 100000000"),
+    ("node", {"real_time_factor": -1.0}, "real_time_factor must be a finite number >= 0 (0 = as fast as possible), got -1.0"),
     ("node", {"batch": 0}, "batch must be >= 1, got 0"),
     ("node", {"qos_depth": 2**31}, "qos_depth must be <= 2147483647, got 2147483648"),
     ("node", {"qos_depth": -3}, "qos_depth must be >= 1, got -3"),
@@ -187,6 +190,137 @@ def test_bad_parameter_values_are_one_line(executable, params, expected, ros_dom
     assert process.wait(60) == 2
     log = (tmp_path / "bad.log").read_text()
     assert log.splitlines() == [f"ad_sim {executable}: " + log.split(": ", 1)[1].rstrip()] and expected in log, log
+
+
+def test_an_instance_file_with_too_many_views_is_one_line_at_start(ros_domain_id, tmp_path):
+    """An instance file's `views: 100000000` loaded, and the node ran out of memory making its cameras' publishers."""
+    path = tmp_path / "views.yaml"
+    path.write_text(yaml.safe_dump([dict(INSTANCES[0], views=100000000)]))
+    process = start("node", ros_domain_id, tmp_path / "bad.log", instances=str(path), real_time_factor=0)
+    assert process.wait(60) == 2
+    log = (tmp_path / "bad.log").read_text()
+    assert log.splitlines()[-1] == (f"ad_sim node: {path}: entry 0 (sphere): field 'views': expected an integer in "
+                                    "[1, 16], got 100000000"), log
+
+
+def a_listener(rclpy_context, views: int = 1):
+    """A node subscribed (reliable, volatile) to every simulator topic of `views` cameras: (node, executor,
+    received (topic, message) pairs)."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from ad_sim import messages
+    from ad_sim.dds import message_class
+
+    listener = Node("listener", context=rclpy_context)
+    received = []
+    qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    for topic, type_name in messages.topic_types(views).items():
+        listener.create_subscription(message_class(type_name), topic, lambda m, t=topic: received.append((t, m)), qos)
+    executor = SingleThreadedExecutor(context=rclpy_context)
+    executor.add_node(listener)
+    return listener, executor, received
+
+
+def test_a_late_subscriber_gets_the_ground_truth_of_the_episode_now_playing_only(rclpy_context, ros_domain_id, tmp_path):
+    """SPEC 5: /ad_sim/instance is transient local, the ground truth of the episode now playing. Its writer kept
+    qos_depth (100) messages, so a subscriber (a recorder) joining at episode k got the ground truth of episodes
+    0..k-1 as well: episodes without frames at the start of its recording."""
+    from ad_msgs.msg import SimInstance
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    soft = {"shape": "sphere", "material": "jelly", "parameters": {"youngs_modulus": 2.0e4, "poissons_ratio": 0.3}}
+    instance_file = tmp_path / "soft.yaml"
+    instance_file.write_text(yaml.safe_dump([dict(soft, seed=3), dict(soft, seed=4)]))
+    node = start("node", ros_domain_id, tmp_path / "node.log", instances=str(instance_file), real_time_factor=1.0, loop=True)
+    wait_for_log(tmp_path / "node.log", r"episode 2:", node, timeout=120)
+    late = Node("late", context=rclpy_context)
+    indices = []
+    late.create_subscription(SimInstance, "/ad_sim/instance", lambda m: indices.append(m.episode_index), QoSProfile(
+        depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    executor = SingleThreadedExecutor(context=rclpy_context)
+    executor.add_node(late)
+    try:
+        deadline = time.monotonic() + 60
+        while not indices:  # the latched one, at once
+            assert time.monotonic() < deadline, (tmp_path / "node.log").read_text()
+            executor.spin_once(timeout_sec=0.05)
+        end = time.monotonic() + 1.0  # and any backlog behind it
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        executor.shutdown()
+        late.destroy_node()
+    assert stop(node, signal.SIGINT) == 0
+    assert indices and min(indices) >= 2, indices  # was [0, 1, 2, ...]
+
+
+def test_a_stop_between_episodes_publishes_nothing_ahead_of_its_time(rclpy_context, ros_domain_id, tmp_path):
+    """A SIGINT while the node waits for the next episode's wall time ended the wait and published that
+    episode's ground truth at once, 0.9 s early and alone: an empty episode at the end of a recording, and
+    the log said the episode was cut short."""
+    soft = {"shape": "sphere", "material": "jelly", "parameters": {"youngs_modulus": 2.0e4, "poissons_ratio": 0.3}}
+    instance_file = tmp_path / "soft.yaml"
+    instance_file.write_text(yaml.safe_dump([dict(soft, seed=3), dict(soft, seed=4)]))
+    listener, executor, received = a_listener(rclpy_context)
+    try:
+        node = start("node", ros_domain_id, tmp_path / "node.log", instances=str(instance_file), real_time_factor=1.0,
+                     batch=2, wait_for_subscribers=1)  # both episodes simulated before the first is played
+        deadline = time.monotonic() + 120
+        while sum(topic.endswith("particles") for topic, _ in received) < 25:  # episode 0 played whole
+            assert time.monotonic() < deadline, (tmp_path / "node.log").read_text()
+            executor.spin_once(timeout_sec=0.01)
+        assert stop(node, signal.SIGINT) == 0  # within the 0.9 s gap before episode 1
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        executor.shutdown()
+        listener.destroy_node()
+    log = (tmp_path / "node.log").read_text()
+    assert [m.episode_index for t, m in received if t.endswith("instance")] == [0], log
+    assert len(received) == 76 and "published 1 episode(s), 76 messages" in log and "episode 1:" not in log, log
+
+
+FAILING_SIMULATION = """
+import sys
+import ad_sim.episode
+
+real, calls = ad_sim.episode.simulate_batch, []
+
+def simulate_batch(*args, **kwargs):
+    calls.append(1)
+    if len(calls) > 1:
+        raise RuntimeError("injected failure")
+    return real(*args, **kwargs)
+
+ad_sim.episode.simulate_batch = simulate_batch
+from ad_sim.sim_node import main
+main(sys.argv)
+"""
+
+
+def test_a_simulation_failure_plays_what_was_simulated_then_exits_1(ros_domain_id, tmp_path):
+    """The second batch fails: the first batch's episode is played whole, then the node exits with status 1. The
+    failure used to stop playback at once: the episode playing was cut short and the queued ones dropped."""
+    import os
+    import sys
+
+    soft = {"shape": "sphere", "material": "jelly", "parameters": {"youngs_modulus": 2.0e4, "poissons_ratio": 0.3}}
+    instance_file = tmp_path / "soft.yaml"
+    instance_file.write_text(yaml.safe_dump([dict(soft, seed=3), dict(soft, seed=4)]))
+    log = tmp_path / "node.log"
+    args = [sys.executable, "-c", FAILING_SIMULATION, "--ros-args", "-p", f"instances:={instance_file}",
+            "-p", "real_time_factor:=0.0", "-p", "batch:=1"]
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id), PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0")
+    with log.open("w") as out:
+        assert subprocess.run(args, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT, timeout=240).returncode == 1
+    text = log.read_text()
+    assert "simulation failed: RuntimeError: injected failure" in text and "Traceback" not in text, text
+    assert "published 1 episode(s), 76 messages" in text, text
 
 
 def test_a_device_this_machine_lacks_is_refused_at_start(ros_domain_id, tmp_path):

@@ -340,7 +340,7 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
         import warp
 
         warp.config.log_level = warp.LOG_WARNING
-    from .instances import benchmark, load_instance_file
+    from .instances import MAX_VIEWS, benchmark, load_instance_file
     from .mpm import check_device
 
     try:
@@ -357,8 +357,8 @@ def _generate(argv: list[str] | None, writing: list[Path]) -> int:
         if args.limit < 1:
             parser.error(f"--limit must be >= 1 (the number of instances to keep), got {args.limit}")
         instances = instances[: args.limit]
-    if args.views is not None and args.views < 1:
-        parser.error("--views must be >= 1")
+    if args.views is not None and not 1 <= args.views <= MAX_VIEWS:
+        parser.error(f"--views must be in 1..{MAX_VIEWS}, got {args.views}")
     if args.write_instances:
         return _write_instances(instances, args.write_instances, args.views)
     if args.shards < 1:

@@ -39,6 +39,10 @@ DOWNWARD_SPEED = (0.0, 0.5)  # m/s, initial downward speed
 
 TRAIN_VIEWS = 4
 EVALUATION_VIEWS = 1
+# Most cameras an episode may have (instance files, `generate --views`, the sim node's `views`): four times the
+# training rig. Each view is 25 renders, 400 KB of masks per episode and two more topics; a mistyped 100000000
+# was taken and failed later, out of memory, when the cameras or the node's publishers were made.
+MAX_VIEWS = 16
 
 _SPLIT_CODES = {name: code for code, name in enumerate(SPLITS)}
 _PARAMETER_STREAM = 1  # second PCG64 stream of a seed, for benchmark parameters
@@ -342,8 +346,8 @@ def instance_from_entry(entry, index: int, source: str) -> Instance:
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**64:
         raise ValueError(f"{where}: field 'seed': expected an integer in [0, 2^64), got {seed!r}")
     views = entry.get("views", EVALUATION_VIEWS)
-    if isinstance(views, bool) or not isinstance(views, int) or views < 1:
-        raise ValueError(f"{where}: field 'views': expected a positive integer, got {views!r}")
+    if isinstance(views, bool) or not isinstance(views, int) or not 1 <= views <= MAX_VIEWS:
+        raise ValueError(f"{where}: field 'views': expected an integer in [1, {MAX_VIEWS}], got {views!r}")
     split = entry.get("split", "custom")
     if split not in SPLITS:
         raise ValueError(f"{where}: field 'split': expected one of {SPLITS}, got {split!r}{_did_you_mean(split, SPLITS)}")

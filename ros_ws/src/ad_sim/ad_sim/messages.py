@@ -26,8 +26,9 @@ INSTANCE_TYPE = "ad_msgs/msg/SimInstance"
 POINT_FIELDS = ("x", "y", "z", "dx", "dy", "dz", *(f"f{i}{j}" for i in range(3) for j in range(3)))
 POINT_FIELD_FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
 POINT_STEP = 4 * len(POINT_FIELDS)
-# QoS of the simulator topics: reliable keep-last; ground truth is transient local so that a
-# late subscriber gets the episode now playing.
+# QoS of the simulator topics: reliable keep-last QOS_DEPTH; ground truth is transient local with depth 1, so that a
+# late subscriber gets the episode now playing (not the last QOS_DEPTH episodes: a late recorder's bag began with
+# that many episodes without frames).
 QOS_DEPTH = 100
 
 
@@ -85,8 +86,9 @@ def is_simulator_topic(topic: str, prefix: str = DEFAULT_PREFIX) -> bool:
 
 def topic_qos(topic: str, prefix: str = DEFAULT_PREFIX) -> dict:
     """QoS the simulator offers on `topic` (reliability, durability, history, depth)."""
-    durability = "transient_local" if topic == instance_topic(prefix) else "volatile"
-    return {"reliability": "reliable", "durability": durability, "history": "keep_last", "depth": QOS_DEPTH}
+    if topic == instance_topic(prefix):
+        return {"reliability": "reliable", "durability": "transient_local", "history": "keep_last", "depth": 1}
+    return {"reliability": "reliable", "durability": "volatile", "history": "keep_last", "depth": QOS_DEPTH}
 
 
 # ---------------------------------------------------------------------------- messages

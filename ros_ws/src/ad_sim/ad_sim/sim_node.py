@@ -13,6 +13,9 @@ Acknowledgements follow the writers' heartbeats (every 3 s by default on Fast DD
 cap playback near one episode a second), so on Fast DDS the node loads a default writer profile
 with 20 ms heartbeats (ad_sim/data/dds/fast_heartbeat.xml) unless FASTRTPS_DEFAULT_PROFILES_FILE
 is set already: about 60 episodes/s reach the recorder (benchmarks/record_throughput.py).
+QoS: reliable, keep-last qos_depth, volatile (a late subscriber gets the frames published after it joins), but the
+ground truth (<topic_prefix>/instance) is transient local with depth 1: a late subscriber gets the episode now playing,
+not the earlier ones.
 Set wait_for_subscribers to N to start playing only once every simulator topic has N matched
 subscriptions (e.g. a recorder started first).
 A subscriber that dies without leaving (kill -9, a lost link) stays matched until DDS drops it at its
@@ -84,9 +87,13 @@ class SimPublishers:
         self.ack_timeout = ack_timeout
         self.stop = stop or threading.Event()  # once set, nobody waits for acknowledgements (a stopping node)
         self.by_topic = {}
+        self.depths = {}
         for topic, type_name in messages.topic_types(views, prefix).items():
-            # what the simulator offers on the topic, with this node's depth
-            qos = qos_from_profile({"depth": depth}, default=messages.topic_qos(topic, prefix))
+            # What the simulator offers on the topic, with this node's depth; but the transient-local ground truth
+            # keeps its depth of 1 (messages.topic_qos: a late subscriber gets the episode now playing).
+            offered = messages.topic_qos(topic, prefix)
+            self.depths[topic] = offered["depth"] if offered["durability"] == "transient_local" else depth
+            qos = qos_from_profile({"depth": self.depths[topic]}, default=offered)
             self.by_topic[topic] = (type_name, node.create_publisher(message_class(type_name), topic, qos))
         self.unacknowledged = dict.fromkeys(self.by_topic, 0)
         self.unresponsive = set()  # topics not waited on (beyond a slice) since a timeout, until they are acknowledged
@@ -98,7 +105,7 @@ class SimPublishers:
 
     def publish_message(self, topic: str, message) -> None:
         """Publish an rclpy message on `topic`, first waiting for acknowledgements if the window is full."""
-        if self.unacknowledged[topic] >= self.depth - 1:
+        if self.unacknowledged[topic] >= self.depths[topic] - 1:  # (depth 1: every message waits for the previous one)
             self.wait_for_acks([topic])
         self.by_topic[topic][1].publish(message)
         self.unacknowledged[topic] += 1
@@ -152,7 +159,8 @@ PARAMETERS = (
     ("loop", False, "start over after the last episode"),
     ("topic_prefix", messages.DEFAULT_PREFIX, "prefix of the topics"),
     ("frame_id", messages.DEFAULT_FRAME_PREFIX, "prefix of the frame ids: <frame_id>/world, <frame_id>/view_<k>"),
-    ("qos_depth", messages.QOS_DEPTH, "keep-last depth of the publishers (the flow control window)"),
+    ("qos_depth", messages.QOS_DEPTH, "keep-last depth of the publishers (the flow control window); the transient-local "
+                                                 "instance topic keeps 1, the episode now playing, for a late subscriber"),
     ("wait_for_subscribers", 0, "start playing once every topic has this many subscriptions"),
     ("ack_timeout", ACK_TIMEOUT, "s to wait for reliable subscribers' acknowledgements before publishing on without them"),
 )
@@ -166,11 +174,15 @@ class SimNode(Node):
         self.param = lambda name: self.get_parameter(name).value
         self.rate = number(self, "real_time_factor")
         if not 0 <= self.rate < math.inf:
-            raise ValueError("real_time_factor must be >= 0 (0 = as fast as possible)")
-        for name, least in (("seed", 0), ("instance_seed", 0), ("views", 0), ("batch", 1), ("qos_depth", 1),
+            raise ValueError(f"real_time_factor must be a finite number >= 0 (0 = as fast as possible), got {self.rate}")
+        for name, least in (("seed", 0), ("instance_seed", 0), ("batch", 1), ("qos_depth", 1),
                             ("wait_for_subscribers", 0)):
             if self.param(name) < least:
                 raise ValueError(f"{name} must be >= {least}, got {self.param(name)}")
+        from .instances import MAX_VIEWS  # (the bound of instance files' views too)
+
+        if not 0 <= self.param("views") <= MAX_VIEWS:
+            raise ValueError(f"views must be in 0..{MAX_VIEWS} (0: the instances' own), got {self.param('views')}")
         ack_timeout = number(self, "ack_timeout")
         if not 0 < ack_timeout < math.inf:
             raise ValueError(f"ack_timeout must be > 0 (seconds), got {ack_timeout}")
@@ -233,10 +245,12 @@ class SimNode(Node):
                     break
         except Cancelled:  # the node is stopping
             pass
-        except Exception as exc:  # report and end playback rather than hang the publisher
-            self.get_logger().error(f"simulation failed: {type(exc).__name__}: {exc}")
+        except Exception as exc:  # report and end playback (exit 1) rather than hang the publisher
+            # The episodes simulated before stay queued ahead of the end marker and are played whole: a stop here
+            # cut the episode playing short (a truncated episode in a recording) and dropped the rest.
+            self.get_logger().error(f"simulation failed: {type(exc).__name__}: {exc}; playing what was simulated "
+                                    f"before ({self.episodes.qsize()} episode(s) queued), then exiting with status 1")
             self.failed = True
-            self.stop.set()
         finally:
             while not self.stop.is_set():  # the end marker, unless the node is stopping (then nobody reads it)
                 try:
@@ -276,26 +290,30 @@ class SimNode(Node):
                 continue
             if episode is None:
                 break
-            instance = episode.instance
-            values = ", ".join(f"{k}={v:.4g}" for k, v in instance.parameters.items())
-            self.get_logger().info(f"episode {index}: {instance.episode_id} ({instance.shape}, {instance.material}: {values})")
             last_stamp = None
             for topic, stamp, data in messages.episode_messages(episode, index, prefix=self.prefix, frame_prefix=frame_prefix):
-                if self.stop.is_set():
-                    break
                 if self.rate > 0 and stamp != last_stamp:  # a new frame: wait for its wall time
                     offset = stamp / 1e9 / self.rate
                     if clock_start is None or time.monotonic() > clock_start + offset + LATE_RESTART:
                         clock_start = time.monotonic() - offset  # first frame, or the simulation fell behind
                     self._sleep_until(clock_start + offset)
+                if self.stop.is_set():  # (a stop ends the wait early: publish nothing ahead of its time)
+                    break
+                if last_stamp is None:  # the episode starts now (its instance message)
+                    self._log_episode(index, episode.instance)
                 last_stamp = stamp
                 self.sim_publishers.publish(topic, data)
             else:
                 played += 1
-            index += 1
+            if last_stamp is not None:  # an episode the stop came before is not begun, nor cut short
+                index += 1
         self.sim_publishers.wait_for_acks()
         cut = f" (episode {index - 1} cut short by the stop)" if index > played else ""
         self.get_logger().info(f"published {played} episode(s){cut}, {self.sim_publishers.published} messages")
+
+    def _log_episode(self, index: int, instance) -> None:
+        values = ", ".join(f"{k}={v:.4g}" for k, v in instance.parameters.items())
+        self.get_logger().info(f"episode {index}: {instance.episode_id} ({instance.shape}, {instance.material}: {values})")
 
     def stop_worker(self) -> None:
         """Ends the simulation worker before the node goes: a daemon thread still inside Warp when the
