@@ -19,7 +19,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "ros_ws" / "src" / pkg
 
 from ad_estimator.cli import positive  # noqa: E402
 from ad_sim.episode import Episode, simulate_batch  # noqa: E402
-from ad_sim.instances import BENCHMARK_SIZES, BENCHMARK_SPLITS, benchmark, load_instance_file  # noqa: E402
+from ad_sim.instances import BENCHMARK_SIZES, BENCHMARK_SPLITS, MAX_VIEWS, benchmark, load_instance_file  # noqa: E402
 
 HEADER = 24  # pixels of caption above the sheet
 GAP = 2  # pixels between tiles
@@ -67,6 +67,8 @@ def main(argv=None) -> int:
     if args.instances and (args.size or args.split):  # was: silently ignored, previewing the file's instance
         parser.error("--size/--split choose a benchmark split; give them or --instances, not both")
     args.size, args.split = args.size or "tiny", args.split or "unseen"
+    if args.views is not None and args.views > MAX_VIEWS:
+        parser.error(f"--views must be in 1..{MAX_VIEWS}, got {args.views}")
     if args.output.is_dir():
         parser.error(f"-o/--output: {args.output} is a folder; give a file name, e.g. {args.output / 'episode.png'}")
     if not cv2.haveImageWriter(str(args.output)):

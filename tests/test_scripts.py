@@ -35,6 +35,7 @@ PREVIEW_CASES = [
     (["-o", "{tmp}/notes.txt/sheet.png"], "-o/--output: {tmp}/notes.txt is a file, not a folder"),
     (["--views", "-2"], "argument --views: expected a whole number >= 1, got '-2'"),
     (["--views", "0"], "argument --views: expected a whole number >= 1, got '0'"),
+    (["--views", "100000000"], "--views must be in 1..16, got 100000000"),  # simulated until memory ran out
     (["--instances", "{tmp}/bad.yaml", "--split", "train"],
      "--size/--split choose a benchmark split; give them or --instances, not both"),
     (["--size", "small", "--instances", "{tmp}/bad.yaml"],
