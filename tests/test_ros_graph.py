@@ -64,6 +64,18 @@ def stop(proc, sig=signal.SIGINT) -> str:
     return "".join(proc.lines)
 
 
+def camera_and_listener(ros, name: str, topic: str):
+    """A client node on the test's executor: a reliable camera publishing on `topic`, and the estimates it gets."""
+    context, executor = ros
+    client = Node(name, context=context)
+    estimates = []
+    client.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append,
+                               QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    publisher = client.create_publisher(Image, topic, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    executor.add_node(client)
+    return client, publisher, estimates
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_after_the_last_frame_loses_no_estimate(ros, model_path, sig):
     """A launch file that stops the estimator as its camera (or bag replay) ends sends SIGINT, then SIGTERM.
@@ -74,13 +86,7 @@ def test_a_signal_after_the_last_frame_loses_no_estimate(ros, model_path, sig):
                     "-p", "output_policy:=anytime", "-p", "min_frames:=15", "-p", "every_n:=100",
                     "-p", "idle_flush:=30.0")
     read_until(proc, "model test-streaming")
-    context, executor = ros
-    client = Node("graph_test_client", context=context)
-    estimates = []
-    client.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append,
-                               QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-    publisher = client.create_publisher(Image, topic, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
-    executor.add_node(client)
+    client, publisher, estimates = camera_and_listener(ros, "graph_test_client", topic)
     assert wait_for(lambda: publisher.get_subscription_count() > 0 and client.count_publishers(
         "/ad_estimator/estimate") > 0, timeout=30), "".join(proc.lines)
     for k, mask in enumerate(falling_masks(count=20, seed=4)):  # an episode cut short: 20 of 25 frames
@@ -157,18 +163,13 @@ def test_frames_delivered_but_not_yet_taken_at_the_signal_are_estimated(ros, mod
     from estimator_ros import tracked
     from rclpy.parameter import Parameter
 
-    context, executor = ros
+    context, _ = ros
     topic = "/graph_test/cached_mask"
     overrides = {"model_path": str(model_path), "reliable": True, "output_policy": "anytime", "min_frames": 15,
                  "every_n": 100, "idle_flush": 30.0, "input_depth": 100}
     node = tracked(EstimatorNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
                                  cli_args=["--ros-args", "-r", f"mask:={topic}"]))
-    client = Node("graph_cache_client", context=context)
-    estimates = []
-    client.create_subscription(MaterialEstimate, "/ad_estimator/estimate", estimates.append,
-                               QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-    publisher = client.create_publisher(Image, topic, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
-    executor.add_node(client)
+    client, publisher, estimates = camera_and_listener(ros, "graph_cache_client", topic)
     assert wait_for(lambda: publisher.get_subscription_count() > 0 and node.publisher.get_subscription_count() > 0,
                     timeout=30)
     for k, mask in enumerate(falling_masks(count=20, seed=4)):  # the node's executor does not spin yet
