@@ -289,3 +289,31 @@ def test_topic_names_and_the_output_folder_are_resolved_as_ros_and_a_shell_would
     assert bad.wait(60) == 2
     assert "topics: '/chatter/' is not a topic name" in (tmp_path / "bad.log").read_text()
     assert not (tmp_path / "bad").exists()
+
+
+def test_a_second_simulator_run_into_one_recording_is_warned_about(rclpy_context, ros_domain_id, tmp_path):
+    """Each simulator run stamps its episodes from 0 s: a second run into a running recorder gave a bag whose two
+    runs share stamps (training then mixed their frames), without a word at recording time."""
+    from ad_msgs.msg import SimInstance
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    node = Node("runs", context=rclpy_context)
+    truth = node.create_publisher(SimInstance, "/ad_sim/instance", QoSProfile(
+        depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    try:
+        recorder = start("record", ros_domain_id, tmp_path / "r.log", output=str(tmp_path / "bag"))
+        wait_for_log(tmp_path / "r.log", r"subscribed to /ad_sim/instance ", recorder)
+        for sec in (0, 1, 0, 1):  # episodes 0 and 1 of one run, then of another
+            message = SimInstance(episode_id=f"e{sec}")
+            message.header.stamp.sec = sec
+            truth.publish(message)
+            assert truth.wait_for_all_acked()
+        time.sleep(0.3)
+        assert stop(recorder) == 0, (tmp_path / "r.log").read_text()
+    finally:
+        node.destroy_node()
+    log = (tmp_path / "r.log").read_text()
+    warnings = [line for line in log.splitlines() if "a new simulator run?" in line]
+    assert len(warnings) == 1 and "an episode stamped 0.000 s, not after the one before (1.000 s)" in warnings[0], log
+    assert recorder_counts(log) == (4, 4), log  # recorded all the same: the bag loses nothing

@@ -759,3 +759,19 @@ def test_report_names_the_episode_of_an_unknown_material(tmp_path, capsys):
     assert err.startswith(f"python -m training report: {path}: \"frames\"[\"25\"]: episode 'e1' has the unknown "
                           "material 'honey' (expected one of jelly, plasticine, sand); pass a predictions.json"), err
     assert "\n" not in err and not (tmp_path / "out").exists()
+
+
+def test_the_pipeline_trains_on_recorded_bags_and_generates_nothing_beside_them(tmp_path, monkeypatch, capsys):
+    """Bags recorded through topics (`ad_sim record`: no DONE marker) under <data>/<size>/<split> are the data: the
+    pipeline generated the split beside them, as for a half-generated folder, and trained on both (each recorded
+    episode twice). A shard generate left unfinished is still generated (resumed)."""
+    from training.pipeline import ensure_bags
+
+    calls = []
+    monkeypatch.setattr("ad_sim.generate.main", lambda argv: calls.append(argv) or 0)
+    write_synthetic_bag(tmp_path / "data" / "tiny" / "train" / "recorded", 2, views=1)
+    assert ensure_bags(tmp_path / "data", "tiny", "train", 0, "cpu", progress=False) == tmp_path / "data/tiny/train"
+    assert not calls and "nothing generated beside them" in capsys.readouterr().out
+    write_synthetic_bag(tmp_path / "data" / "tiny" / "seen" / "seen-0of1", 2, views=1)  # generate's, unfinished
+    ensure_bags(tmp_path / "data", "tiny", "seen", 0, "cpu", progress=False)
+    assert len(calls) == 1 and "--split" in calls[0]

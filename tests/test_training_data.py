@@ -177,6 +177,34 @@ def test_incomplete_episodes_are_skipped(tmp_path):
     assert ds.episode_ids == [episodes[0].instance.episode_id, episodes[2].instance.episode_id]
 
 
+def test_episodes_of_two_simulator_runs_recorded_into_one_bag_are_not_mixed(tmp_path, caplog):
+    """Each simulator run stamps its episodes from 0 s, so a recorder left running over two runs holds two
+    episodes at each start stamp: the first lost every frame to the second, which held both runs' frames,
+    some views of the first run under its name (the later message won each frame slot). Both are skipped,
+    saying why; an episode without a twin is kept, and a run recorded twice is the same episode, kept once."""
+    first_run = [synthetic_episode(i, 0, 2) for i in range(3)]
+    second_run = [synthetic_episode(i, 5, 1, split="seen") for i in range(2)]  # 1 view: view_1 would be run 1's
+    with BagWriter(tmp_path / "bags" / "two") as writer:
+        write_episodes(writer, first_run, 0)
+        write_episodes(writer, second_run, 0)
+    with BagWriter(tmp_path / "again" / "twice") as writer:
+        write_episodes(writer, first_run[:2], 0)
+        write_episodes(writer, first_run[:2], 0)
+    ds = data.load_dataset(tmp_path / "bags", tmp_path / "cache", progress=False)
+    assert ds.episode_ids == [first_run[2].instance.episode_id]
+    for j in range(2):
+        np.testing.assert_array_equal(ds.video(j), first_run[2].masks[j])
+    bag = tmp_path / "bags" / "two"
+    for a, b in zip(first_run, second_run):
+        assert any(m.startswith(f"{bag}: episodes {a.instance.episode_id}, {b.instance.episode_id} start at the same "
+                                "stamp") and "record each run into its own bag" in m for m in caplog.messages)
+    assert f"{bag}: 4 of 5 episodes skipped" in ds.problems
+    again = data.load_dataset(tmp_path / "again", tmp_path / "cache", progress=False)
+    assert again.episode_ids == [e.instance.episode_id for e in first_run[:2]] and not again.problems
+    for i, ep in enumerate(first_run[:2]):
+        np.testing.assert_array_equal(again.video(2 * i + 1), ep.masks[1])
+
+
 def as_mono16(msg):
     """The mono8 mask as mono16 (0 / 65535, little endian): a mask the estimator accepts."""
     pixels = np.frombuffer(bytes(msg["data"]), np.uint8).astype("<u2") * 257
@@ -337,6 +365,22 @@ def test_an_episode_in_two_bags_is_never_on_both_sides_of_the_split(tmp_path, ca
         keyed = data.split_instances(40, 0.2, seed, keys=[("e", i) for i in range(40)])
         for a, b in zip(keyed, data.split_instances(40, 0.2, seed)):
             np.testing.assert_array_equal(a, b)
+
+
+def test_episodes_in_several_bags_are_warned_about(tmp_path, caplog):
+    """A split recorded through topics and generated as well, under one --bags, is two bags of the same
+    episodes with other bytes (a recording keeps its receive times): each copy was trained on and scored,
+    without a word. Now one warning names an episode and its bags; distinct bags say nothing."""
+    write_synthetic_bag(tmp_path / "bags" / "generated", 3, views=2, seed=1)
+    write_synthetic_bag(tmp_path / "bags" / "recorded", 2, views=1, seed=1)
+    write_synthetic_bag(tmp_path / "other", 2, views=1, seed=1, first=3)
+    with caplog.at_level(logging.WARNING, logger="training.data"):
+        assert len(data.load_dataset(tmp_path / "bags", tmp_path / "cache", progress=False)) == 5
+        assert len(data.load_dataset(tmp_path / "other", tmp_path / "cache", progress=False)) == 2
+    (warning,) = [m for m in caplog.messages if "more than one bag" in m]
+    assert warning.startswith(f"2 episode(s) under {tmp_path / 'bags'} are in more than one bag (e.g. "
+                              f"{synthetic_episode(0, 1, 1).instance.episode_id}, in {tmp_path / 'bags' / 'generated'} "
+                              f"and {tmp_path / 'bags' / 'recorded'})")
 
 
 def test_resized_videos_are_area_averaged(bags, tmp_path):

@@ -26,6 +26,7 @@ found twice under --bags (a copy) is read once. Contents:
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import logging
 import math
@@ -200,18 +201,40 @@ def _frames(items, start_ns: int) -> dict[int, tuple[int, object]]:
     return out
 
 
+def _distinct_episodes(bag: Path, episodes, skipped: list[str]):
+    """The episodes of group_episodes, but None for each of the episodes that start at the same stamp: the
+    frames of all but the last of those went to the last, mixed with its own, and which is whose cannot be
+    told (a recording of several simulator runs, each stamping its episodes from 0 s). Said in `skipped`.
+    Where they are all one episode (the same id and seed: a run recorded twice, a ground truth received
+    twice), its frames are its own: the last, which holds them all, is that episode."""
+    for stamp, same in itertools.groupby(episodes, key=lambda ep: ep.stamp_ns):
+        same = list(same)
+        if len({(ep.instance.episode_id, int(ep.instance.seed)) for ep in same}) == 1:
+            yield same[-1]
+            continue
+        ids = ", ".join(ep.instance.episode_id for ep in same)
+        skipped.append(f"{bag}: episodes {ids} start at the same stamp ({stamp / 1e9:.3f} s), so their frames "
+                       "cannot be told apart (several simulator runs recorded into one bag? each run stamps its "
+                       "episodes from 0 s: record each run into its own bag); skipped")
+        log.warning("%s", skipped[-1])
+        yield from (None for _ in same)
+
+
 def read_bag(bag: Path, coverage: bool = False) -> tuple[list[dict], list[str]]:
     """Decodes one bag into its complete episodes, and what was missing or unreadable, one line each:
     the reader's warnings (a truncated file, read in recover mode) and the episodes skipped, each
     warned as it is found. An episode is skipped when it lacks frames or one of its frames cannot
-    be used; the other episodes are kept."""
+    be used, or when it starts at the stamp of another episode (_distinct_episodes); the others are kept."""
     out, skipped = [], []
     wanted = {instance_topic(), particles_topic()}
     reader = BagReader(bag, recover=True)  # one reader: its topics() scan and the reading warn once
     reader.topic_filter = {t for t in reader.topics() if t in wanted or MASK_TOPIC.match(t)}
-    episodes = 0
-    for ep in group_episodes(reader, instance_topic()):
+    episodes = lost = 0
+    for ep in _distinct_episodes(bag, group_episodes(reader, instance_topic()), skipped):
         episodes += 1
+        if ep is None:  # one of several episodes that share their start stamp (said in `skipped`)
+            lost += 1
+            continue
         inst = ep.instance
         particles = _frames(ep.messages.get(particles_topic(), []), ep.stamp_ns)
         views = {}
@@ -224,6 +247,7 @@ def read_bag(bag: Path, coverage: bool = False) -> tuple[list[dict], list[str]]:
             skipped.append(f"{bag}: episode {inst.episode_id} is incomplete ({len(particles)} particle frames, "
                            f"{len(views)} complete views); skipped")
             log.warning("%s", skipped[-1])
+            lost += 1
             continue
         try:
             videos = {view: episode_video(bag, inst.episode_id, topic, frames, coverage)
@@ -231,6 +255,7 @@ def read_bag(bag: Path, coverage: bool = False) -> tuple[list[dict], list[str]]:
         except EpisodeRejected as exc:
             skipped.append(f"{exc}; episode skipped")
             log.warning("%s", skipped[-1])
+            lost += 1
             continue
         trajectory = np.stack([_particles(particles[t][1]) for t in range(FRAME_COUNT)])
         label, si, norm, mask = labels_of(inst.material, inst.parameter_names, inst.parameters)
@@ -240,7 +265,7 @@ def read_bag(bag: Path, coverage: bool = False) -> tuple[list[dict], list[str]]:
             "trajectory": normalise_displacement(trajectory), "videos": dict(sorted(videos.items())),
         })
     if skipped:
-        skipped.append(f"{bag}: {len(skipped)} of {episodes} episodes skipped")
+        skipped.append(f"{bag}: {lost} of {episodes} episodes skipped")
         log.warning("%s", skipped[-1])
     return out, reader.problems + skipped
 
@@ -410,7 +435,7 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True,
     """Decodes every bag under `bags` that is not cached yet, then opens the cached dataset. With
     `coverage` the videos keep the masks' grey levels (a separate cache folder per bag)."""
     cache_dir = Path(cache_dir)
-    shards, problems = [], []
+    shards, sources, problems = [], [], []
     paths = find_bags(bags)
     for path in tqdm(paths, desc="cache bags", disable=None if progress else True, unit="bag"):
         folder = cache_dir / (bag_key(path) + ("-coverage" if coverage else ""))
@@ -440,12 +465,27 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True,
             _write_shard(folder, episodes, source_problems)
         problems += source_problems
         shards.append(folder)
+        sources.append(path)
     if not shards:
         raise ValueError(f"no complete episodes in the bags under {bags}: training and `python -m training` "
                          f"evaluation need all {FRAME_COUNT} frames of a mask view and of the tracked particles "
                          f"({particles_topic()}), which bags generated with --skip-particles lack (evaluate those "
                          f"with `ros2 run ad_estimator evaluate`)")
-    return Dataset(shards, problems)
+    dataset = Dataset(shards, problems)
+    _warn_of_episodes_in_several_bags(dataset, sources, bags)
+    return dataset
+
+
+def _warn_of_episodes_in_several_bags(dataset: Dataset, sources: list[Path], bags) -> None:
+    """One warning if an episode (its id and seed) is in more than one of the bags read (say, a split recorded
+    through topics and generated as well, under one --bags): each copy is trained on and scored."""
+    shards_of: dict = {}
+    for (s, _), key in zip(dataset._inst_loc, dataset.episode_keys()):
+        shards_of.setdefault(key, set()).add(s)
+    if several := [key for key, shards in shards_of.items() if len(shards) > 1]:
+        log.warning("%d episode(s) under %s are in more than one bag (e.g. %s, in %s): each copy counts in training "
+                    "(on one side of the validation split) and in evaluation; keep one bag of each", len(several), bags,
+                    several[0][0], " and ".join(str(sources[s]) for s in sorted(shards_of[several[0]])))
 
 
 def split_instances(n: int, val_fraction: float, seed: int, keys=None) -> tuple[np.ndarray, np.ndarray]:

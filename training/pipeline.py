@@ -7,6 +7,7 @@ finished training (all epochs in last.pt) is not redone.
 from __future__ import annotations
 
 import argparse
+import re
 import shutil
 import time
 from argparse import Namespace
@@ -56,9 +57,17 @@ def check_data_seed(folder: Path, seed: int) -> None:
 def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str, progress: bool = True) -> Path:
     """data_dir/<size>/<split>, generated (resumably) with benchmark seed `seed` if it holds no finished bag
     (run checks first, with check_data_seed, that bags there were generated with that seed)."""
-    from ad_sim.generate import main as generate
+    from ad_sim.generate import is_done, main as generate
 
     folder = data_dir / size / split
+    # Bags that generate did not write (recorded through topics: no DONE marker, not one of its shard folders)
+    # are the data: generating beside them would train on both, each recorded episode twice.
+    shard = re.compile(rf"{re.escape(split)}-\d+of\d+")
+    if foreign := sorted({bag for bag in (p.parent for p in folder.rglob("*.mcap"))
+                          if not is_done(bag) and not shard.fullmatch(bag.name)}):
+        print(f"using the bags under {folder} as they are ({len(foreign)} not written by ad_sim.generate, e.g. "
+              f"{foreign[0]}): nothing generated beside them")
+        return folder
     if not list(folder.rglob("*.mcap")) or not list(folder.rglob("DONE")):
         print(f"generating {size}/{split} bags into {folder} (ad_sim.generate, resumable)")
         code = generate(["--size", size, "--split", split, "--seed", str(seed), "--out", str(folder),

@@ -146,9 +146,13 @@ class RecordNode(Node):
         self.received[topic] = self.written[topic] = 0
 
         unusable_stamp_warned = False
+        # Ground truth stamped at or before the episode before: a new simulator run, which stamps its episodes
+        # from 0 s again, so that its frames and the earlier run's share stamps and cannot be told apart.
+        episode_starts = topic == messages.instance_topic(self.prefix) and use_header
+        last_start = None
 
         def on_message(data: bytes) -> None:
-            nonlocal unusable_stamp_warned
+            nonlocal unusable_stamp_warned, last_start
             received_ns = time.time_ns()
             self.received[topic] += 1
             log_time = received_ns
@@ -160,6 +164,14 @@ class RecordNode(Node):
                         self.get_logger().warning(f"{topic}: {exc}; recording it, and any later such message on "
                                                   "the topic, at its receive time")
                         unusable_stamp_warned = True
+            if episode_starts:
+                if last_start is not None and log_time <= last_start:
+                    self.get_logger().warning(
+                        f"{topic}: an episode stamped {log_time / 1e9:.3f} s, not after the one before "
+                        f"({last_start / 1e9:.3f} s): a new simulator run? Each run stamps its episodes from 0 s, so "
+                        "in one bag its episodes and the earlier run's share stamps and mix; stop this recorder "
+                        "and record each run into its own bag")
+                last_start = log_time
             try:
                 self.writer.write(topic, log_time, data, publish_time_ns=received_ns)
             except BagWriteError as exc:  # a full disk, ...: the writer stopped, and so does the recording
