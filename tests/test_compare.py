@@ -200,3 +200,19 @@ def test_a_report_that_cannot_be_written_leaves_the_earlier_one_whole(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and f"--out {out}: cannot write the report there" in proc.stderr, proc.stderr
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_every_run_says_how_many_clips_it_scored_and_a_mismatch_is_said(tmp_path):
+    """Runs scored on different numbers of clips (other bags, or episodes left out) do not compare: each
+    run's row gives its clips and compare.md says when they differ (before: nothing told them apart)."""
+    same, other = _metrics(tmp_path / "a.json", 0.15), _metrics(tmp_path / "b.json", 0.16)
+    metrics = json.loads(other.read_text())
+    metrics["frames"]["25"]["n"] = 450
+    other.write_text(json.dumps(metrics))
+    assert main(["compare", "--group", f"A={same}", "--group", f"B={other}", "--out", str(tmp_path / "out")]) == 0
+    md = (tmp_path / "out" / "compare.md").read_text()
+    runs = _rows(md.split("Every run:")[1].split("\n\n")[1].splitlines())
+    assert (runs["A"]["clips"], runs["B"]["clips"]) == (str(REAL["frames"]["25"]["n"]), "450")
+    assert f"scored different numbers of clips** (450, {REAL['frames']['25']['n']})" in md
+    assert main(["compare", "--group", f"A={same}", "--group", f"B={same}", "--out", str(tmp_path / "same")]) == 0
+    assert "different numbers of clips" not in (tmp_path / "same" / "compare.md").read_text()

@@ -114,7 +114,7 @@ def test_misclassified_clips_count_and_absent_families_are_left_out():
     assert [b["n"] for b in one["jelly"]["youngs_modulus"]["bins"]] == [0, 1, 0]
     assert math.isnan(one["jelly"]["youngs_modulus"]["bins"][0]["lo"])
     assert math.isnan(one["jelly"]["youngs_modulus"]["correlation"])
-    assert "| jelly | E | n/a | 0.000 (" in format_error_by_true_value(one, 25)
+    assert "| jelly | E | 1 | n/a | 0.000 (" in format_error_by_true_value(one, 25)  # n: the one clip
     # A count that does not divide (10 jelly clips, two of them the same): the leftover goes to the middle.
     ten = np.r_[np.flatnonzero(classes == 0), 1]
     ten = error_by_true_value(Predictions(classes[ten], true[ten], probabilities[ten], pred.pred_params[ten]))
@@ -140,7 +140,8 @@ def test_formatted_section_has_a_row_per_family_parameter_and_the_columns():
     text = format_error_by_true_value(table, 18)
     lines = text.splitlines()
     assert lines[0] == "## Error by true value (18 frames)"
-    assert ("| family | parameter | lowest third | middle third | highest third | all | constant guess | "
+    # n: the clips each row covers (with 2 a correlation of 1.000 says nothing; the reader must see it)
+    assert ("| family | parameter | n | lowest third | middle third | highest third | all | constant guess | "
             "correlation |") in lines
     rows = [line for line in lines if line.startswith("| ") and not line.startswith("| family")]
     assert [tuple(r.split(" | ")[:2]) for r in rows] == [
@@ -148,12 +149,14 @@ def test_formatted_section_has_a_row_per_family_parameter_and_the_columns():
         ("| plasticine", "yield"), ("| sand", "phi")]
     e = table["jelly"]["youngs_modulus"]
     lo, hi = e["bins"][0]["lo"], e["bins"][0]["hi"]
-    assert rows[0].startswith(f"| jelly | E | {e['bins'][0]['error']:.3f} ({lo:.3g}–{hi:.3g}) |")
+    assert rows[0].startswith(f"| jelly | E | {e['n']} | {e['bins'][0]['error']:.3f} ({lo:.3g}–{hi:.3g}) |")
+    assert all(len(r.split(" | ")) == len(lines[lines.index(next(h for h in lines if h.startswith("| family")))]
+                                          .split(" | ")) for r in rows)  # as many cells as the header
     assert rows[0].endswith(f"| {e['all']:.3f} | {e['constant_guess']:.3f} | {e['correlation']:.3f} |")
     phi = table["sand"]["friction_angle"]["bins"][2]  # range shown in degrees
     assert f"({math.degrees(phi['lo']):.3g}–{math.degrees(phi['hi']):.3g})" in rows[-1]
     four = format_error_by_true_value(error_by_true_value(_predictions(true, classes, true), bins=4), 25)
-    assert "| family | parameter | bin 1 | bin 2 | bin 3 | bin 4 | all | constant guess | correlation |" in four
+    assert "| family | parameter | n | bin 1 | bin 2 | bin 3 | bin 4 | all | constant guess | correlation |" in four
 
 
 def _saved(tmp_path, by_frames: dict[int, Predictions], names=PARAMETER_NAMES, **header):

@@ -502,7 +502,9 @@ def test_confusion_matrix_is_true_by_predicted_and_plotted_so(tmp_path, monkeypa
     _plot_confusion(ax, np.asarray(confusion))
     assert (ax.get_xlabel(), ax.get_ylabel()) == ("predicted", "true")
     assert [t.get_text() for t in ax.get_xticklabels()] == list(FAMILIES)
-    assert [t.get_text() for t in ax.get_yticklabels()] == list(FAMILIES)
+    # each true row says how many clips it holds (a family without any reads as absent, not as all wrong)
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["jelly\n(3 clips)", "plasticine\n(1 clips)",
+                                                            "sand\n(2 clips)"]
     cells = {(round(t.get_position()[0]), round(t.get_position()[1])): int(t.get_text()) for t in ax.texts}
     assert all(cells[j, i] == confusion[i][j] for i in range(3) for j in range(3))  # text at x = predicted
     assert ax.images[0].get_array()[0, 2] == 1 and ax.images[0].get_array()[1, 0] == 1  # row = true
@@ -541,3 +543,66 @@ def test_report_plots_give_each_family_one_colour(tmp_path, monkeypatch):
         colours.setdefault(label, set()).add(colour)
     assert {f: len(colours[f]) for f in FAMILIES} == dict.fromkeys(FAMILIES, 1), colours
     assert len({next(iter(colours[f])) for f in FAMILIES} | colours["all"]) == 4  # all distinct
+
+
+def _report_figures(monkeypatch, by_frames, tmp_path) -> dict:
+    """write_report's figures, by file name, kept open to be read."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    saved, savefig = {}, Figure.savefig
+
+    def record(self, path, *args, **kwargs):
+        saved[Path(path).name] = self
+        return savefig(self, path, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", record)
+    monkeypatch.setattr("matplotlib.pyplot.close", lambda *args: None)
+    write_report(by_frames, tmp_path, "t")
+    return saved
+
+
+def test_report_plots_give_units_and_mark_a_family_without_clips(tmp_path, monkeypatch):
+    """pred_vs_true.png names each axis's units (E, yield in Pa on log axes, phi in degrees) and the frames;
+    a family without clips is named as such in every legend (before: 'sand' stood in the phi panel's and the
+    RegL1 plot's legends over nothing, as if it were drawn) and its confusion row says 0 clips."""
+    true = np.array([JELLY, PLASTICINE, JELLY])
+    classes = np.array([0, 1, 0])
+    figures = _report_figures(monkeypatch, {k: Predictions(classes, true, _onehot(classes), _fill(true))
+                                            for k in (25, 15)}, tmp_path)
+    panels = figures["pred_vs_true.png"].axes
+    assert [(ax.get_xlabel(), ax.get_ylabel()) for ax in panels] == [
+        ("true E (Pa)", "predicted E (Pa)"), ("true nu", "predicted nu"), ("true yield (Pa)", "predicted yield (Pa)"),
+        ("true phi (degrees)", "predicted phi (degrees)")]
+    assert [(ax.get_xscale(), ax.get_yscale()) for ax in panels] == [("log", "log"), ("linear", "linear"),
+                                                                      ("log", "log"), ("linear", "linear")]
+    assert "25 frames" in figures["pred_vs_true.png"].get_suptitle()
+    legends = [[t.get_text() for t in ax.get_legend().get_texts()] for ax in panels]
+    assert legends == [["jelly", "plasticine"], ["jelly", "plasticine"], ["plasticine"], ["sand (no clips)"]]
+    (regl1_ax,) = figures["regl1_vs_frames.png"].axes
+    assert [t.get_text() for t in regl1_ax.get_legend().get_texts()] == ["all", "jelly", "plasticine",
+                                                                         "sand (no clips)"]
+    (confusion_ax,) = figures["confusion.png"].axes
+    assert confusion_ax.get_yticklabels()[2].get_text() == "sand\n(0 clips)"
+
+
+def test_report_says_how_many_clips_each_row_and_plot_covers(tmp_path):
+    """A temporal-OOD row with fewer clips than the full clip's (episodes left out of it, as the estimator's
+    evaluate does for a window holding fewer than K slots) is said so; before, report.md gave the full
+    row's count alone. Each plot is captioned with what it shows."""
+    true = np.array([JELLY, PLASTICINE, SAND] * 2)
+    classes = np.array([0, 1, 2] * 2)
+    full = Predictions(classes, true, _onehot(classes), _fill(true))
+    short = Predictions(classes[:4], true[:4], _onehot(classes[:4]), _fill(true[:4]))
+    write_report({25: full, 24: full, 15: short}, tmp_path, "t")
+    report = (tmp_path / "report.md").read_text()
+    assert "Clips: 6;" in report and "15 frames: 4" in report and "24 frames" not in report
+    assert "RegL1: over all clips" in report  # both tables' RegL1 counts every clip, misclassified ones too
+    captions = report[report.index("## Plots"):]
+    assert "clip counts, rows the true family" in captions and "E and yield in Pa on log axes" in captions
+    assert captions.index("clip counts") < captions.index("![confusion]") < captions.index("Pa on log axes") \
+        < captions.index("![predicted vs true]") < captions.index("![RegL1 vs frames]")
+    write_report({25: full, 15: full}, tmp_path / "same", "t")
+    assert "Rows with another number of clips" not in (tmp_path / "same" / "report.md").read_text()

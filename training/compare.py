@@ -42,7 +42,8 @@ def parse_groups(texts: list[str]) -> dict[str, list[Path]]:
 
 def read_run(path: Path, frames: int, which: str) -> tuple[Path, dict[str, float]]:
     """(the metrics file, its table cells at `frames` keyed by column label, NaN where no clip
-    qualified) of a metrics file or of the metrics.json in a report folder."""
+    qualified, and "clips": the clips it scored, NaN where the file lacks it) of a metrics file or of
+    the metrics.json in a report folder."""
     file = path / "metrics.json" if path.is_dir() else path
     hint = "pass a metrics.json written by python -m training evaluate, or its report folder"
     metrics = read_frames_json(file, "a metrics file", hint)
@@ -64,6 +65,9 @@ def read_run(path: Path, frames: int, which: str) -> tuple[Path, dict[str, float
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
             raise ValueError(f"{file}: {field} is {_json_kind(value)}, not a number; {hint}")
         cells[label] = math.nan if value is None else float(value)
+    # how many clips the run scored (NaN where a file lacks it): runs on other bags do not compare
+    clips = entry.get("n")
+    cells["clips"] = float(clips) if isinstance(clips, int) and not isinstance(clips, bool) else math.nan
     return file, cells
 
 
@@ -120,9 +124,14 @@ def compare(groups: dict[str, list[Path]], out: str | Path, frames: int = FRAME_
                           [[name, *(_spread_cell(a[:, j]) for j in range(len(labels))), str(len(a))]
                            for name, a in arrays.items()]),
           "", "Every run:", "",
-          *markdown_table(["group", "run", *labels],
-                          [[name, str(Path(f.parent.name) / f.name), *(table_cell(v[label]) for label in labels)]
+          *markdown_table(["group", "run", *labels, "clips"],
+                          [[name, str(Path(f.parent.name) / f.name), *(table_cell(v[label]) for label in labels),
+                            "n/a" if math.isnan(v["clips"]) else str(int(v["clips"]))]
                            for name, rs in runs.items() for f, v in rs])]
+    if len(counts := {v["clips"] for rs in runs.values() for _, v in rs if not math.isnan(v["clips"])}) > 1:
+        md += ["", f"**The runs scored different numbers of clips** ({', '.join(str(int(c)) for c in sorted(counts))}"
+                   "): they were evaluated on different bags, or episodes were left out, so their figures may not "
+                   "compare."]
     if differences:
         md += ["", f"RegL1 against {first}:", ""]
         md += [f"- {d['group']}: mean difference {_precise(d['regl1_mean_difference'], '+')} "

@@ -365,7 +365,7 @@ def format_table(results: dict, title: str = "", which: str = "correct") -> str:
     lines = []
     if title:
         lines.append(f"**{title}** (parameter errors over {'correctly classified' if which == 'correct' else 'all'} "
-                     "clips of each family; E, yield: log-MAE; nu: MAE; phi: MAE in degrees)")
+                     "clips of each family; E, yield: log-MAE; nu: MAE; phi: MAE in degrees; RegL1: over all clips)")
         lines.append("")
     lines += markdown_table(["frames", *table_labels()],
                             [[str(k), *map(table_cell, table_values(m, which))]
@@ -450,26 +450,37 @@ def format_error_by_true_value(table: dict, frames: int) -> str:
         lo, hi = (math.degrees(b[key]) if name == "friction_angle" else b[key] for key in ("lo", "hi"))
         return f"{table_cell(b['error'])} ({lo:.3g}–{hi:.3g})"
 
-    rows = [[family, _SHORT.get(name, name), *(cell(name, b) for b in e["bins"]),
+    rows = [[family, _SHORT.get(name, name), str(e["n"]), *(cell(name, b) for b in e["bins"]),
              *(table_cell(e[key]) for key in ("all", "constant_guess", "correlation"))]
             for family, parameters in table.items() for name, e in parameters.items()]
     return "\n".join([
         f"## Error by true value ({frames} frames)", "",
         "Parameter errors over all clips of each family, in equal-count bins of the true value (its range in "
         "parentheses: SI, phi in degrees), against a constant guess at the middle of the family's range (what a "
-        "model that learned nothing scores) and the correlation of predicted and true (log space for E, yield).",
-        "", *markdown_table(["family", "parameter", *names, "all", "constant guess", "correlation"], rows)])
+        "model that learned nothing scores) and the correlation of predicted and true (log space for E, yield); "
+        "n: the clips of the family.",
+        "", *markdown_table(["family", "parameter", "n", *names, "all", "constant guess", "correlation"], rows)])
 
 
 #: Each family's colour in the report's plots (matplotlib's default cycle would give plasticine's yield
 #: and sand's phi jelly's colour, and shift every family in the RegL1 plot).
 FAMILY_COLORS = {family: f"C{i}" for i, family in enumerate(FAMILIES)}
+#: Each parameter's axis label in the plots, with its units (SI, phi in degrees as in the tables).
+_AXIS_LABEL = {"youngs_modulus": "E (Pa)", "poissons_ratio": "nu", "yield_stress": "yield (Pa)",
+               "friction_angle": "phi (degrees)"}
+
+
+def _family_label(family: str, clips: int) -> str:
+    """A family's legend entry: a family without clips is named as absent, not drawn as if it had no error."""
+    return family if clips else f"{family} (no clips)"
 
 
 def _plot_confusion(ax, confusion: np.ndarray) -> None:
+    """Clip counts, true family down the rows (each with its number of clips: 0 for a family absent
+    from the evaluation), predicted across."""
     ax.imshow(confusion, cmap="Blues")
     ax.set_xticks(range(len(FAMILIES)), FAMILIES)
-    ax.set_yticks(range(len(FAMILIES)), FAMILIES)
+    ax.set_yticks(range(len(FAMILIES)), [f"{f}\n({n} clips)" for f, n in zip(FAMILIES, confusion.sum(axis=1))])
     ax.set_xlabel("predicted")
     ax.set_ylabel("true")
     for i in range(confusion.shape[0]):
@@ -495,7 +506,7 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
 
     fig, ax = plt.subplots(figsize=(4, 4))
     _plot_confusion(ax, np.asarray(results[str(full_k)]["confusion"]))
-    ax.set_title(f"confusion ({full_k} frames)")
+    ax.set_title(f"confusion, clip counts ({full_k} frames)")
     fig.tight_layout()
     fig.savefig(out / "confusion.png", dpi=100)
     plt.close(fig)
@@ -510,7 +521,8 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
             t, p = full.true_params[rows, j], full.pred_params[rows, j]
             if name == "friction_angle":
                 t, p = np.degrees(t), np.degrees(p)
-            ax.scatter(t, p, s=8, label=family, color=FAMILY_COLORS[family])  # one colour per family in every plot
+            ax.scatter(t, p, s=8, label=_family_label(family, int(rows.sum())),
+                       color=FAMILY_COLORS[family])  # one colour per family in every plot
         lims = [min(ranges[f][name][0] for f in families), max(ranges[f][name][1] for f in families)]
         if name == "friction_angle":
             lims = list(np.degrees(lims))
@@ -518,9 +530,11 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
         if ERROR_KIND[name] == "log_mae":
             ax.set_xscale("log")
             ax.set_yscale("log")
-        ax.set_xlabel(f"true {_SHORT[name]}")
-        ax.set_ylabel(f"predicted {_SHORT[name]}")
+        ax.set_xlabel(f"true {_AXIS_LABEL[name]}")
+        ax.set_ylabel(f"predicted {_AXIS_LABEL[name]}")
         ax.legend(fontsize=7)
+    fig.suptitle(f"predicted vs true ({full_k} frames; every clip of each true family, misclassified ones too; "
+                 "dashed: predicted = true)", fontsize=10)
     fig.tight_layout()
     fig.savefig(out / "pred_vs_true.png", dpi=100)
     plt.close(fig)
@@ -529,22 +543,38 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
     fig, ax = plt.subplots(figsize=(5, 4))
     ax.plot(ks, [results[str(k)]["regl1"] for k in ks], "o-", label="all", color="k")
     for family in FAMILIES:
-        ax.plot(ks, [results[str(k)]["families"][family]["regl1"] for k in ks], ".--", label=family,
+        ax.plot(ks, [results[str(k)]["families"][family]["regl1"] for k in ks], ".--",
+                label=_family_label(family, max(results[str(k)]["families"][family]["n"] for k in ks)),
                 color=FAMILY_COLORS[family])
     ax.set_xlabel("frames observed")
-    ax.set_ylabel("RegL1")
+    ax.set_ylabel("RegL1 (0 = exact)")
+    ax.set_title("RegL1 over all clips, by true family", fontsize=10)
     ax.legend()
     fig.tight_layout()
     fig.savefig(out / "regl1_vs_frames.png", dpi=100)
     plt.close(fig)
 
+    clips = f"Clips: {len(full)}; frames per clip: {FRAME_COUNT}."
+    if fewer := [f"{k} frames: {len(by_frames[k])}" for k in sorted(by_frames, reverse=True)
+                 if len(by_frames[k]) != len(full)]:  # e.g. episodes left out of a temporal-OOD row
+        clips += f" Rows with another number of clips than the {full_k}-frame row's: {', '.join(fewer)}."
     md = [f"# {title}", "", format_table(results, "Paper convention"), "",
           format_table(results, "Over all clips of each family", which="all"), "",
-          f"Clips: {len(full)}; frames per clip: {FRAME_COUNT}.", ""]
+          clips, "",
+          "RegL1: each clip's mean error over its true family's sampled parameters, each normalised by the "
+          "width of that family's sampling range (log space for E, yield), averaged over the clips.", ""]
     if (calibration := results[str(full_k)].get("calibration")) is not None:
         md += [format_calibration(calibration, full_k), ""]
     md += [format_error_by_true_value(error_by_true_value(full), full_k), ""]
-    md += ["![confusion](confusion.png)", "", "![predicted vs true](pred_vs_true.png)", "",
-           "![RegL1 vs frames](regl1_vs_frames.png)", ""]
+    md += ["## Plots", "",
+           f"Confusion matrix ({full_k} frames, {len(full)} clips): clip counts, rows the true family (with its "
+           "number of clips), columns the predicted one.", "", "![confusion](confusion.png)", "",
+           f"Predicted against true parameters ({full_k} frames): every clip of each true family, misclassified "
+           "ones too (the parameters the model estimates whatever family it predicts); E and yield in Pa on "
+           "log axes, nu, phi in degrees; the dashed line is predicted = true over the families' ranges. "
+           "A family has one colour in every plot; one without clips is marked \"(no clips)\".", "",
+           "![predicted vs true](pred_vs_true.png)", "",
+           "RegL1 against the frames observed (the tables' rows: the full clip and the temporal-OOD prefixes), "
+           "over all clips and per true family.", "", "![RegL1 vs frames](regl1_vs_frames.png)", ""]
     (out / "report.md").write_text("\n".join(md))
     return results
