@@ -418,3 +418,28 @@ def test_an_episode_without_a_usable_frame_is_left_out_saying_so(setup, tmp_path
     assert [p["true_material"] for p in saved["frames"]["25"]] == ["jelly", "plasticine"]
     assert [(e["episode_id"], e["reason"]) for e in saved["left_out"]["25"]] == [("test-disc-sand-0002", reason)]
     assert saved["left_out"]["18"] == saved["left_out"]["25"]
+
+
+def test_episodes_of_two_simulator_runs_in_one_bag_are_left_out_saying_so(tmp_path):
+    """A recorder left running over two simulator runs (each stamps its episodes from 0 s): each episode of the
+    second run shares its start stamp with one of the first, and all their frames went to one ground truth,
+    scored as if they were its own. Such episodes are left out with a warning; an episode without a twin stays."""
+    from ad_sim.rosbag import BagWriter, qos_profile
+    from estimator_bags import instance_dict
+
+    instance_topic, mask_topic = messages.instance_topic(), messages.mask_topic(0)
+    with BagWriter(tmp_path / "two_runs") as writer:
+        for topic, kind in ((instance_topic, messages.INSTANCE_TYPE), (mask_topic, messages.IMAGE_TYPE)):
+            writer.add_topic(topic, kind, [qos_profile(**messages.topic_qos(topic))])
+        for run, count in ((0, 3), (1, 2)):  # the second run stopped after 2 episodes
+            for index, (material, parameters) in enumerate(EPISODES[:count]):
+                start = messages.frame_stamp(index, 0)
+                instance = instance_dict(index, material, parameters, start) | {"seed": 10 * run + index}
+                writer.write(instance_topic, start, instance)
+                for frame, mask in enumerate(falling_masks(seed=100 + 10 * run + index)):
+                    stamp = messages.frame_stamp(index, frame)
+                    writer.write(mask_topic, stamp, messages.mask_message(mask, stamp, "ad_sim/view_0"))
+    with pytest.warns(UserWarning, match="start at the same stamp") as caught:
+        kept = [(instance.seed, len(frames)) for instance, frames in evaluate.episode_frames(tmp_path / "two_runs")]
+    assert kept == [(2, 25)]
+    assert len([w for w in caught if "record each run into its own bag" in str(w.message)]) == 2

@@ -26,7 +26,6 @@ found twice under --bags (a copy) is read once. Contents:
 from __future__ import annotations
 
 import hashlib
-import itertools
 import json
 import logging
 import math
@@ -49,7 +48,7 @@ from ad_sim.materials import (
 )
 from ad_sim.messages import POINT_FIELDS, instance_topic, particles_topic
 from ad_sim.render import MASK_SIZE
-from ad_sim.rosbag import BagError, BagReader, BagUnreadable, group_episodes
+from ad_sim.rosbag import BagError, BagReader, BagUnreadable, distinct_episodes, group_episodes
 
 log = logging.getLogger(__name__)
 
@@ -201,40 +200,25 @@ def _frames(items, start_ns: int) -> dict[int, tuple[int, object]]:
     return out
 
 
-def _distinct_episodes(bag: Path, episodes, skipped: list[str]):
-    """The episodes of group_episodes, but None for each of the episodes that start at the same stamp: the
-    frames of all but the last of those went to the last, mixed with its own, and which is whose cannot be
-    told (a recording of several simulator runs, each stamping its episodes from 0 s). Said in `skipped`.
-    Where they are all one episode (the same id and seed: a run recorded twice, a ground truth received
-    twice), its frames are its own: the last, which holds them all, is that episode."""
-    for stamp, same in itertools.groupby(episodes, key=lambda ep: ep.stamp_ns):
-        same = list(same)
-        if len({(ep.instance.episode_id, int(ep.instance.seed)) for ep in same}) == 1:
-            yield same[-1]
-            continue
-        ids = ", ".join(ep.instance.episode_id for ep in same)
-        skipped.append(f"{bag}: episodes {ids} start at the same stamp ({stamp / 1e9:.3f} s), so their frames "
-                       "cannot be told apart (several simulator runs recorded into one bag? each run stamps its "
-                       "episodes from 0 s: record each run into its own bag); skipped")
-        log.warning("%s", skipped[-1])
-        yield from (None for _ in same)
-
-
 def read_bag(bag: Path, coverage: bool = False) -> tuple[list[dict], list[str]]:
     """Decodes one bag into its complete episodes, and what was missing or unreadable, one line each:
     the reader's warnings (a truncated file, read in recover mode) and the episodes skipped, each
     warned as it is found. An episode is skipped when it lacks frames or one of its frames cannot
-    be used, or when it starts at the stamp of another episode (_distinct_episodes); the others are kept."""
+    be used, or when it starts at the stamp of another episode (distinct_episodes); the others are kept."""
     out, skipped = [], []
     wanted = {instance_topic(), particles_topic()}
     reader = BagReader(bag, recover=True)  # one reader: its topics() scan and the reading warn once
     reader.topic_filter = {t for t in reader.topics() if t in wanted or MASK_TOPIC.match(t)}
     episodes = lost = 0
-    for ep in _distinct_episodes(bag, group_episodes(reader, instance_topic()), skipped):
+
+    def collided(same, reason: str) -> None:
+        nonlocal episodes, lost
+        episodes, lost = episodes + len(same), lost + len(same)
+        skipped.append(f"{bag}: {reason}")
+        log.warning("%s", skipped[-1])
+
+    for ep in distinct_episodes(group_episodes(reader, instance_topic()), collided):
         episodes += 1
-        if ep is None:  # one of several episodes that share their start stamp (said in `skipped`)
-            lost += 1
-            continue
         inst = ep.instance
         particles = _frames(ep.messages.get(particles_topic(), []), ep.stamp_ns)
         views = {}

@@ -30,7 +30,7 @@ from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC
 from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns
 from ad_sim import messages
-from ad_sim.rosbag import BagError, BagReader, group_episodes, one_line_warnings
+from ad_sim.rosbag import BagError, BagReader, distinct_episodes, group_episodes, one_line_warnings
 
 INSTANCE_TOPIC = messages.instance_topic()
 MASK_TOPIC = DEFAULT_INPUT_TOPIC  # the node's input: the simulator's first camera
@@ -145,7 +145,10 @@ def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = Fals
     if given, gets the reader's warnings (BagReader.problems) once the bag is read."""
     reader = BagReader(bag, topics=[INSTANCE_TOPIC, mask_topic], recover=recover)
     check_image_topic(reader.topics(), mask_topic, bag)
-    for episode in group_episodes(reader, INSTANCE_TOPIC):
+    def collided(_, reason: str) -> None:  # their ground truth and frames cannot be paired
+        warnings.warn(f"{bag}: {reason}")
+
+    for episode in distinct_episodes(group_episodes(reader, INSTANCE_TOPIC), collided):
         yield episode.instance, [(_stamp_or_none(m.header.stamp), m) for _, m in episode.messages.get(mask_topic, [])]
     if problems is not None:
         problems += reader.problems

@@ -19,6 +19,7 @@ import bisect
 import contextlib
 import heapq
 import io
+import itertools
 import json
 import mmap
 import os
@@ -1119,6 +1120,23 @@ def group_episodes(messages: Iterable[BagMessage], instance_topic: str = "/ad_si
             before_first.setdefault(topic, []).append((stamp, message))
     if current is not None:
         yield current
+
+
+def distinct_episodes(episodes: Iterable[BagEpisode], collided) -> Iterator[BagEpisode]:
+    """group_episodes' episodes but those that start at the stamp of another episode: the frames of all of
+    them went to the last, mixed with its own, and which is whose cannot be told (a recording of several
+    simulator runs, each stamping its episodes from 0 s). Each such group is passed to `collided(group,
+    reason)` instead. Where a group is all one episode (the same id and seed: a run recorded twice, a ground
+    truth received twice), the last, which holds its frames, is that episode."""
+    for stamp, same in itertools.groupby(episodes, key=lambda ep: ep.stamp_ns):
+        same = list(same)
+        if len({(ep.instance.episode_id, int(ep.instance.seed)) for ep in same}) == 1:
+            yield same[-1]
+            continue
+        collided(same, f"episodes {', '.join(ep.instance.episode_id for ep in same)} start at the same stamp "
+                       f"({stamp / 1e9:.3f} s), so their frames cannot be told apart (several simulator runs "
+                       "recorded into one bag? each run stamps its episodes from 0 s: record each run into its own "
+                       "bag); skipped")
 
 
 # --------------------------------------------------------------------------- CLI
