@@ -52,7 +52,7 @@ from ad_sim.rosbag import BagError, BagReader, BagUnreadable, distinct_episodes,
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 2  # 2: meta.json records source_problems (a version-1 cache cannot say its bag was complete)
+CACHE_VERSION = 3  # 2: meta.json records source_problems; 3: episodes sharing a start stamp are left out (distinct_episodes)
 MASK_TOPIC = re.compile(r"^/ad_sim/view_(\d+)/mask$")
 _HASH_BLOCK = 1 << 20
 RESIZE_SLICE_FRAMES = 4096  # frames resized per slice by resized_videos (64 MB of 128x128 masks)
