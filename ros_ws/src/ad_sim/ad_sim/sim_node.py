@@ -291,6 +291,9 @@ class SimNode(Node):
             if episode is None:
                 break
             last_stamp = None
+            # Said before its first frame's wait, not between the wait and the publish: a log call there
+            # delayed the frames (the first ones came 0.1 to 0.17 s late, in a burst, while the worker simulated).
+            self._log_episode(index, episode.instance)
             for topic, stamp, data in messages.episode_messages(episode, index, prefix=self.prefix, frame_prefix=frame_prefix):
                 if self.rate > 0 and stamp != last_stamp:  # a new frame: wait for its wall time
                     offset = stamp / 1e9 / self.rate
@@ -299,8 +302,6 @@ class SimNode(Node):
                     self._sleep_until(clock_start + offset)
                 if self.stop.is_set():  # (a stop ends the wait early: publish nothing ahead of its time)
                     break
-                if last_stamp is None:  # the episode starts now (its instance message)
-                    self._log_episode(index, episode.instance)
                 last_stamp = stamp
                 self.sim_publishers.publish(topic, data)
             else:
