@@ -762,7 +762,7 @@ def test_report_names_the_episode_of_an_unknown_material(tmp_path, capsys):
 
 
 def test_the_pipeline_trains_on_recorded_bags_and_generates_nothing_beside_them(tmp_path, monkeypatch, capsys):
-    """Bags recorded through topics (`ad_sim record`: no DONE marker) under <data>/<size>/<split> are the data: the
+    """Bags recorded through topics (`ad_sim record`: no generate settings in their metadata) under <data>/<size>/<split> are the data: the
     pipeline generated the split beside them, as for a half-generated folder, and trained on both (each recorded
     episode twice). A shard generate left unfinished is still generated (resumed)."""
     from training.pipeline import ensure_bags
@@ -772,6 +772,8 @@ def test_the_pipeline_trains_on_recorded_bags_and_generates_nothing_beside_them(
     write_synthetic_bag(tmp_path / "data" / "tiny" / "train" / "recorded", 2, views=1)
     assert ensure_bags(tmp_path / "data", "tiny", "train", 0, "cpu", progress=False) == tmp_path / "data/tiny/train"
     assert not calls and "nothing generated beside them" in capsys.readouterr().out
-    write_synthetic_bag(tmp_path / "data" / "tiny" / "seen" / "seen-0of1", 2, views=1)  # generate's, unfinished
+    write_synthetic_bag(tmp_path / "data" / "tiny" / "seen" / "seen-0of1", 2, views=1,  # generate's, unfinished
+                        custom_data={"generator": "ad_sim.generate", "shard": "0/1", "size": "tiny", "split": "seen",
+                                     "seed": "0"})
     ensure_bags(tmp_path / "data", "tiny", "seen", 0, "cpu", progress=False)
     assert len(calls) == 1 and "--split" in calls[0]

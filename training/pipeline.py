@@ -7,7 +7,6 @@ finished training (all epochs in last.pt) is not redone.
 from __future__ import annotations
 
 import argparse
-import re
 import shutil
 import time
 from argparse import Namespace
@@ -28,22 +27,29 @@ LR = {"tiny": 1e-3, "small": 5e-4, "paper": 1e-4}
 SPLITS = ("train", "seen", "unseen")
 
 
-def generated_seeds(folder: Path) -> set[str]:
-    """The benchmark seeds (`ad_sim.generate --seed`) recorded in the metadata.yaml of the bags under `folder`
-    that generate wrote from a benchmark split; bags from elsewhere (recorded, an instance file, unreadable
-    metadata) record none and are left to the later stages."""
+def generate_settings(folder: Path) -> dict[Path, dict | None]:
+    """Each bag folder under `folder` -> the custom data that `ad_sim.generate` recorded in its metadata.yaml
+    (generator, seed, split, ...), or None for bags that generate did not write (recorded ones, an unreadable
+    metadata.yaml)."""
     import yaml
 
-    seeds = set()
+    settings = {}
     for path in folder.rglob("metadata.yaml"):
         try:
             info = (yaml.safe_load(path.read_text()) or {}).get("rosbag2_bagfile_information") or {}
             custom = info.get("custom_data") or {}
         except (OSError, ValueError, AttributeError, yaml.YAMLError):
-            continue
-        if isinstance(custom, dict) and custom.get("generator") == "ad_sim.generate" and "seed" in custom:
-            seeds.add(str(custom["seed"]))
-    return seeds
+            custom = None
+        generated = isinstance(custom, dict) and custom.get("generator") == "ad_sim.generate"
+        settings[path.parent] = custom if generated else None
+    return settings
+
+
+def generated_seeds(folder: Path) -> set[str]:
+    """The benchmark seeds (`ad_sim.generate --seed`) of the bags under `folder` that generate wrote from a
+    benchmark split; bags from elsewhere (recorded, an instance file, unreadable metadata) record none and are
+    left to the later stages."""
+    return {str(custom["seed"]) for custom in generate_settings(folder).values() if custom and "seed" in custom}
 
 
 def check_data_seed(folder: Path, seed: int) -> None:
@@ -57,14 +63,12 @@ def check_data_seed(folder: Path, seed: int) -> None:
 def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str, progress: bool = True) -> Path:
     """data_dir/<size>/<split>, generated (resumably) with benchmark seed `seed` if it holds no finished bag
     (run checks first, with check_data_seed, that bags there were generated with that seed)."""
-    from ad_sim.generate import is_done, main as generate
+    from ad_sim.generate import main as generate
 
     folder = data_dir / size / split
-    # Bags that generate did not write (recorded through topics: no DONE marker, not one of its shard folders)
-    # are the data: generating beside them would train on both, each recorded episode twice.
-    shard = re.compile(rf"{re.escape(split)}-\d+of\d+")
-    if foreign := sorted({bag for bag in (p.parent for p in folder.rglob("*.mcap"))
-                          if not is_done(bag) and not shard.fullmatch(bag.name)}):
+    # Bags that generate did not write (recorded through topics) are the data: generating beside them would
+    # train on both, each recorded episode twice.
+    if foreign := sorted(bag for bag, custom in generate_settings(folder).items() if custom is None):
         print(f"using the bags under {folder} as they are ({len(foreign)} not written by ad_sim.generate, e.g. "
               f"{foreign[0]}): nothing generated beside them")
         return folder

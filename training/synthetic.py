@@ -77,8 +77,9 @@ def synthetic_episode(index: int, seed: int, views: int, split: str = "train"):
 
 
 def write_synthetic_bag(folder: str | Path, episodes: int, views: int = 2, seed: int = 0,
-                        split: str = "train", first: int = 0) -> Path:
-    """Writes `episodes` synthetic episodes (indices first, first+1, ...) as one bag folder."""
-    with BagWriter(folder) as writer:
+                        split: str = "train", first: int = 0, custom_data: dict | None = None) -> Path:
+    """Writes `episodes` synthetic episodes (indices first, first+1, ...) as one bag folder (`custom_data` in
+    its metadata.yaml, e.g. generate's)."""
+    with BagWriter(folder, custom_data=custom_data) as writer:
         write_episodes(writer, [synthetic_episode(first + i, seed, views, split) for i in range(episodes)], 0)
     return Path(folder)

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ad_sim.families import FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, SAMPLED_PARAMETERS, to_unit
+from ad_sim.families import (FAMILIES, FAMILY_RANGES, FRAME_COUNT, PARAMETER_NAMES, PARAMETER_UNITS,
+                              SAMPLED_PARAMETERS, to_unit)
 
 #: The temporal out-of-distribution rows: only the first K frames are observed.
 TEMPORAL_OOD_FRAMES = (24, 22, 18, 15)
@@ -465,9 +466,12 @@ def format_error_by_true_value(table: dict, frames: int) -> str:
 #: Each family's colour in the report's plots (matplotlib's default cycle would give plasticine's yield
 #: and sand's phi jelly's colour, and shift every family in the RegL1 plot).
 FAMILY_COLORS = {family: f"C{i}" for i, family in enumerate(FAMILIES)}
-#: Each parameter's axis label in the plots, with its units (SI, phi in degrees as in the tables).
-_AXIS_LABEL = {"youngs_modulus": "E (Pa)", "poissons_ratio": "nu", "yield_stress": "yield (Pa)",
-               "friction_angle": "phi (degrees)"}
+
+
+def _axis_label(name: str) -> str:
+    """A parameter's axis label in the plots, with its SI unit (phi in degrees, as in the tables)."""
+    unit = "degrees" if name == "friction_angle" else PARAMETER_UNITS[name]
+    return f"{_SHORT[name]} ({unit})" if unit else _SHORT[name]
 
 
 def _family_label(family: str, clips: int) -> str:
@@ -530,8 +534,8 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
         if ERROR_KIND[name] == "log_mae":
             ax.set_xscale("log")
             ax.set_yscale("log")
-        ax.set_xlabel(f"true {_AXIS_LABEL[name]}")
-        ax.set_ylabel(f"predicted {_AXIS_LABEL[name]}")
+        ax.set_xlabel(f"true {_axis_label(name)}")
+        ax.set_ylabel(f"predicted {_axis_label(name)}")
         ax.legend(fontsize=7)
     fig.suptitle(f"predicted vs true ({full_k} frames; every clip of each true family, misclassified ones too; "
                  "dashed: predicted = true)", fontsize=10)

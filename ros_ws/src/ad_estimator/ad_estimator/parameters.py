@@ -58,12 +58,13 @@ RANGES = {
     "diagnostics_period": (MIN_DIAGNOSTICS_PERIOD, MAX_SECONDS),
 }
 
+_COUNTS = ("queue_size", "threads", "max_image_pixels", "every_n", "min_frames", "input_depth")  # whole numbers >= 1
+
 
 def check_parameters(values: dict) -> None:
     """ValueError naming what is wrong with the values given (any subset of PARAMETERS); the window
     checks its own (policy, counts, interval, tolerance) when it is made."""
-    positive = [n for n in ("queue_size", "threads", "max_image_pixels", "every_n", "min_frames", "input_depth")
-                if n in values and values[n] < RANGES[n][0]]
+    positive = [n for n in _COUNTS if n in values and values[n] < RANGES[n][0]]
     if positive:
         raise ValueError(f"{', '.join(positive)} must be positive")
     if "mask_threshold" in values and not _within("mask_threshold", values):
@@ -73,7 +74,7 @@ def check_parameters(values: dict) -> None:
     if "diagnostics_period" in values and not _within("diagnostics_period", values):
         raise ValueError(f"diagnostics_period is seconds in [{MIN_DIAGNOSTICS_PERIOD:g}, {MAX_SECONDS:g}], got "
                          f"{values['diagnostics_period']}")
-    for name in ("threads", "input_depth", "queue_size", "every_n", "min_frames", "max_image_pixels"):
+    for name in _COUNTS:
         most = RANGES[name][1]
         if name in values and values[name] > most:  # (threads:=100000 took minutes and 16 GB to load the model)
             raise ValueError(f"{name} must be at most {most}, got {values[name]}")

@@ -462,8 +462,7 @@ class BagWriter:
         """Close the chunk in progress so that it survives a kill of this process."""
         if self._mcap is not None and not self._closed:
             with self._writing():
-                self._mcap.flush()
-            self._pending.clear()
+                self._mcap.flush()  # (its chunk written, the pending messages are settled at the next _settle)
 
     def close(self) -> None:
         """Finish the file in progress and metadata.yaml; after a failed write, only mark the writer closed."""
