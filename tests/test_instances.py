@@ -178,6 +178,24 @@ def test_instance_file_structure_errors(tmp_path):
         load_instance_file(duplicate)
 
 
+@pytest.mark.parametrize("episode_id", ["two\nlines", "tab\there", "bell\x07", "zero\u200bwidth", "line\u2028break",
+                                        "lone\ud800surrogate"])
+def test_episode_ids_with_control_or_invisible_characters_are_refused(tmp_path, episode_id):
+    """They were taken, and broke the node's one-line episode logs and the bag's metadata; the error is one line."""
+    from ad_sim.instances import write_instance_file
+
+    path = tmp_path / "ids.json"
+    path.write_text(json.dumps([GOOD, GOOD | {"episode_id": episode_id, "seed": 2}]))
+    with pytest.raises(ValueError, match=r"ids.json: entry 1 \(sphere\): field 'episode_id': expected one line of "
+                                         r"printable characters") as caught:
+        load_instance_file(path)
+    assert "\n" not in str(caught.value) and str(caught.value).endswith(f"got {episode_id!r}")
+    bad = Instance(episode_id=episode_id, split="custom", shape="box", material="jelly",
+                   parameters={"youngs_modulus": 1e5, "poissons_ratio": 0.3}, seed=1)
+    with pytest.raises(ValueError, match=r"\(not written\): entry 0 \(box\): field 'episode_id'"):
+        write_instance_file([bad], tmp_path / "out.yaml")
+
+
 def test_drawn_per_family_is_seeded_capped_and_in_benchmark_order():
     from ad_sim.instances import benchmark, drawn_per_family
 

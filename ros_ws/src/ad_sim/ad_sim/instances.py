@@ -354,6 +354,9 @@ def instance_from_entry(entry, index: int, source: str) -> Instance:
     episode_id = entry.get("episode_id", f"{split}-{shape}-{material}-{index:04d}")
     if not isinstance(episode_id, str) or not episode_id:
         raise ValueError(f"{where}: field 'episode_id': expected a non-empty string, got {episode_id!r}")
+    if not episode_id.isprintable():  # a newline, tab or invisible character broke one-line logs and bag metadata
+        raise ValueError(f"{where}: field 'episode_id': expected one line of printable characters (no newlines, tabs, "
+                         f"control or invisible characters; the plain space is fine), got {episode_id!r}")
     return Instance(
         episode_id=episode_id,
         split=split,

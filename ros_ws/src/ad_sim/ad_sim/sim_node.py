@@ -16,6 +16,8 @@ is set already: about 60 episodes/s reach the recorder (benchmarks/record_throug
 QoS: reliable, keep-last qos_depth, volatile (a late subscriber gets the frames published after it joins), but the
 ground truth (<topic_prefix>/instance) is transient local with depth 1: a late subscriber gets the episode now playing,
 not the earlier ones.
+With loop, the episodes of the first pass are kept in memory (up to LOOP_MEMORY) and replayed on the later
+passes, with stamps that go on increasing, rather than simulated again.
 Set wait_for_subscribers to N to start playing only once every simulator topic has N matched
 subscriptions (e.g. a recorder started first).
 A subscriber that dies without leaving (kill -9, a lost link) stays matched until DDS drops it at its
@@ -30,6 +32,7 @@ import array
 import importlib
 import math
 import queue
+import re
 import signal
 import threading
 import time
@@ -49,6 +52,13 @@ ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning
 ACK_SLICE = 0.1  # s between looks at the stop flag while waiting for acknowledgements
 WORKER_JOIN_TIMEOUT = 10.0  # s; a stopped worker ends within one simulated frame, well under this
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
+# Most a looping node keeps of its first pass to replay it: an episode holds 1.2 MB of tracked particles and 0.4 MB
+# of masks per view, so the small benchmark's train split (360 episodes, 4 views) fits; paper's do not, and are
+# simulated again on every pass (docs/simulator.md).
+LOOP_MEMORY = 1 << 30
+# A frame_id prefix: ROS-name characters in '/'-separated parts. tf2 refuses an empty id and a leading '/'; blanks,
+# a trailing or doubled '/' and other characters made ids such as 'ad_sim//world' that tools cannot look up.
+FRAME_PREFIX = re.compile(r"[A-Za-z0-9_]+(?:/[A-Za-z0-9_]+)*")
 
 
 def _element_class(message, field_name: str):
@@ -156,9 +166,11 @@ PARAMETERS = (
                               "instead of 0/255, for a grey-mask model (ad.mask_levels coverage); > 127 is the binary mask"),
     ("device", "cpu", "Warp device: cpu | cuda | cuda:<n>"),
     ("batch", 4, "episodes simulated per batch, ahead of playback"),
-    ("loop", False, "start over after the last episode"),
+    ("loop", False, "start over after the last episode, replaying the episodes simulated if they take at most "
+                    f"{LOOP_MEMORY >> 30} GiB (an episode: 1.2 MB + 0.4 MB per view), else simulating them again"),
     ("topic_prefix", messages.DEFAULT_PREFIX, "prefix of the topics"),
-    ("frame_id", messages.DEFAULT_FRAME_PREFIX, "prefix of the frame ids: <frame_id>/world, <frame_id>/view_<k>"),
+    ("frame_id", messages.DEFAULT_FRAME_PREFIX, "prefix of the frame ids: <frame_id>/world, <frame_id>/view_<k>; "
+                                                "letters, digits and '_' in parts joined by '/' (robot1/ad_sim)"),
     ("qos_depth", messages.QOS_DEPTH, "keep-last depth of the publishers (the flow control window); the transient-local "
                                                  "instance topic keeps 1, the episode now playing, for a late subscriber"),
     ("wait_for_subscribers", 0, "start playing once every topic has this many subscriptions"),
@@ -188,6 +200,11 @@ class SimNode(Node):
             raise ValueError(f"ack_timeout must be > 0 (seconds), got {ack_timeout}")
         if self.param("qos_depth") > MAX_QOS_DEPTH:  # rclpy would fail inside its QoS struct
             raise ValueError(f"qos_depth must be <= {MAX_QOS_DEPTH}, got {self.param('qos_depth')}")
+        self.frame_prefix = self.param("frame_id")
+        if not FRAME_PREFIX.fullmatch(self.frame_prefix):
+            raise ValueError("frame_id must be parts of letters, digits and '_' joined by single '/', e.g. ad_sim or "
+                             "robot1/ad_sim (no blanks, no '/' at either end: it prefixes <frame_id>/world), "
+                             f"got {self.frame_prefix!r}")
         if self.param("device") != "cpu":  # (Warp always has its CPU; checking starts Warp, with its banner)
             from .mpm import check_device
 
@@ -220,29 +237,39 @@ class SimNode(Node):
     # -- simulation worker
 
     def simulate_ahead(self) -> None:
-        """Worker thread: simulate batches and queue their episodes (None after the last one)."""
+        """Worker thread: simulate batches and queue their episodes (None after the last one). With loop, the
+        later passes queue the first pass's episodes again if they were kept (LOOP_MEMORY)."""
         from .episode import simulate_batch
         from .mpm import Cancelled
 
         batch = self.param("batch")
         views = self.param("views") or None
+        loop = self.param("loop")
+        kept, kept_bytes = ([] if loop else None), 0  # the first pass's episodes; None: not kept
         try:
             while not self.stop.is_set():
+                if kept:  # a later pass
+                    self._queue(kept)
+                    continue
                 for start in range(0, len(self.instances), batch):
                     episodes = simulate_batch(self.instances[start : start + batch], device=self.param("device"),
                                               views=views, coverage_masks=self.param("coverage_masks"),
                                               cancelled=self.stop.is_set)
-                    for episode in episodes:
-                        while not self.stop.is_set():
-                            try:
-                                self.episodes.put(episode, timeout=0.1)
-                                break
-                            except queue.Full:
-                                pass
+                    if kept is not None:
+                        kept += episodes
+                        kept_bytes += sum(e.positions.nbytes + e.deformation.nbytes + e.masks.nbytes for e in episodes)
+                        if kept_bytes > LOOP_MEMORY:
+                            self.get_logger().info(f"loop: the episodes of a pass take more than {LOOP_MEMORY >> 30} GiB; "
+                                                   "each pass simulates them again instead of replaying them")
+                            kept = None
+                    self._queue(episodes)
                     if self.stop.is_set():
                         return
-                if not self.param("loop"):
+                if not loop:
                     break
+                if kept:
+                    self.get_logger().info(f"loop: the later passes replay the {len(kept)} episode(s) simulated "
+                                           f"({kept_bytes / 1e6:.0f} MB kept)")
         except Cancelled:  # the node is stopping
             pass
         except Exception as exc:  # report and end playback (exit 1) rather than hang the publisher
@@ -252,9 +279,14 @@ class SimNode(Node):
                                     f"before ({self.episodes.qsize()} episode(s) queued), then exiting with status 1")
             self.failed = True
         finally:
-            while not self.stop.is_set():  # the end marker, unless the node is stopping (then nobody reads it)
+            self._queue([None])  # the end marker, unless the node is stopping (then nobody reads it)
+
+    def _queue(self, episodes) -> None:
+        """Put episodes into the playback queue, waiting for room; gives up when the node stops."""
+        for episode in episodes:
+            while not self.stop.is_set():
                 try:
-                    self.episodes.put(None, timeout=0.1)
+                    self.episodes.put(episode, timeout=0.1)
                     break
                 except queue.Full:
                     pass
@@ -279,7 +311,6 @@ class SimNode(Node):
     def play(self) -> None:
         self.worker.start()
         self._wait_for_subscribers()
-        frame_prefix = self.param("frame_id")
         index = 0  # episodes started; `played` counts those published whole
         played = 0
         clock_start = None  # wall time of stamp 0 when paced
@@ -294,7 +325,7 @@ class SimNode(Node):
             # Said before its first frame's wait, not between the wait and the publish: a log call there
             # delayed the frames (the first ones came 0.1 to 0.17 s late, in a burst, while the worker simulated).
             self._log_episode(index, episode.instance)
-            for topic, stamp, data in messages.episode_messages(episode, index, prefix=self.prefix, frame_prefix=frame_prefix):
+            for topic, stamp, data in messages.episode_messages(episode, index, prefix=self.prefix, frame_prefix=self.frame_prefix):
                 if self.rate > 0 and stamp != last_stamp:  # a new frame: wait for its wall time
                     offset = stamp / 1e9 / self.rate
                     if clock_start is None or time.monotonic() > clock_start + offset + LATE_RESTART:
