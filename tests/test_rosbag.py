@@ -150,7 +150,8 @@ def test_a_killed_writers_file_is_read_chunk_by_chunk_in_log_time_order(tmp_path
     """A file without a summary (a killed recorder's): every message of it was decompressed and held before the
     first was yielded, so recovering (or repairing) a large unsplit recording needed memory for all of it (369 MB
     resident to read a 36 MB file of 300 MB of messages, 58 MB once closed). Now the chunks' start times come from
-    their record headers and messages are released as the chunks are read, as with a summary, in the same order."""
+    their messages, read in a first pass one chunk at a time (their headers are covered by no CRC), and messages are
+    released as the chunks are read again, as with a summary, in the same order."""
     path = tmp_path / "killed"
     stamps = [i * 10 + (15 if i % 3 == 1 else 0) for i in range(60)]  # out of order from chunk to chunk
     writer = BagWriter(path, chunk_size=1)  # one message per chunk
@@ -164,7 +165,7 @@ def test_a_killed_writers_file_is_read_chunk_by_chunk_in_log_time_order(tmp_path
     with pytest.warns(UserWarning, match="truncated"):
         read = iter(BagReader(path, recover=True))
         first = next(read)
-        assert first.log_time_ns == 0 and len(decompressed) < 5
+        assert first.log_time_ns == 0 and len(decompressed) < len(stamps) + 5  # the first pass, then < 5 chunks
         rest = list(read)
     assert [m.log_time_ns for m in [first, *rest]] == sorted(stamps)
     assert [m.message.data[0] for m in [first, *rest]] == sorted(range(60), key=lambda i: stamps[i])
@@ -580,6 +581,87 @@ def test_a_chunk_whose_record_header_is_damaged_is_named_and_the_chunks_after_it
     assert len(recovered) == len(written) - len(lost)
     assert set(recovered) <= {(t, s) for t, s, _ in written}
     assert {s for _, s in recovered} >= {s for _, s, _ in written if s > max(t for _, t in lost)}  # the chunks after it
+
+
+# Stamps of the chunks of _write_chunks' bags: the third chunk reaches back to 5 ns, before the second's.
+CHUNK_STAMPS = [[0, 10, 20], [30, 40, 50], [5, 60, 70], [80, 90, 100]]
+
+
+def _write_chunks(path: Path, chunks: list[list[int]]) -> list[int]:
+    """A bag of one topic whose i-th chunk holds messages logged at chunks[i] (message k a 1x1 image of value k);
+    returns the message values in log-time order (ties in file order)."""
+    stamps = [stamp for chunk in chunks for stamp in chunk]
+    with BagWriter(path, chunk_size=1 << 20) as writer:
+        writer.add_topic("/a", "sensor_msgs/msg/Image")
+        for chunk in chunks:
+            for stamp in chunk:
+                writer.write("/a", stamp, messages.mask_message(np.full((1, 1), writer.message_count, np.uint8), stamp, "f"))
+            writer.flush()
+    return sorted(range(len(stamps)), key=lambda k: stamps[k])
+
+
+def _chunk_at(file: Path, stamp: int) -> int:
+    """Offset of the chunk record holding the message logged at `stamp`."""
+    (offset,) = [offset for offset, logged in _chunk_messages(file) if stamp in {t for _, t in logged}]
+    return offset
+
+
+def test_a_damaged_chunk_start_time_does_not_break_log_time_order(tmp_path):
+    """A killed recorder's file (no summary) whose third chunk's header says its messages start at 60 ns (no CRC
+    covers a chunk header; they start at 5 ns): messages were released up to 60 ns after the second chunk, and the
+    one at 5 ns came after those at 10 to 50 ns, without a word. Now the chunks' start times are their messages' own,
+    read ahead, and the damaged header is named."""
+    path = tmp_path / "bag"
+    in_order = _write_chunks(path, CHUNK_STAMPS)
+    file = path / "bag_0.mcap"
+    offset = _chunk_at(file, 5)
+    data = bytearray(file.read_bytes())
+    data[offset + 9 : offset + 17] = np.uint64(60).tobytes()  # the header's message_start_time
+    footer = len(data) - 8 - 29
+    data_end = int(np.frombuffer(bytes(data[footer + 9 : footer + 17]), "<u8")[0]) - 13  # summary_start - data end
+    assert data[data_end] == rosbag.Opcode.DATA_END
+    file.write_bytes(bytes(data[:data_end]))  # every chunk and its message indexes: what a kill after a flush leaves
+    with pytest.warns(UserWarning) as caught:
+        read = list(BagReader(path, recover=True))
+    assert [m.log_time_ns for m in read] == sorted(t for chunk in CHUNK_STAMPS for t in chunk)
+    assert [m.message.data[0] for m in read] == in_order
+    assert [str(w.message) for w in caught if f"at byte {offset}" in str(w.message)] == [
+        f"{file}: damaged chunk header at byte {offset}: it gives log times 60 to 70 ns, its messages were logged "
+        "from 5 to 70 ns; read in log-time order by their own times"]
+
+
+def test_a_summary_whose_chunk_index_starts_too_late_is_named(tmp_path, monkeypatch):
+    """A writer's error (the summary passes its CRC): the third chunk's index says its messages start at 60 ns, they
+    start at 5 ns. Messages were released by it, as mcap's own reader does, and the one at 5 ns came after those at
+    10 to 50 ns, without a word. Now an error naming --recover before that message, and recovering reads it late,
+    with a warning; `repair` rewrites the bag, whose chunk indexes are then true, in log-time order."""
+    from mcap._chunk_builder import ChunkBuilder
+
+    add_message = ChunkBuilder.add_message
+
+    def starting_late(self, message):
+        add_message(self, message)
+        if self.message_start_time == 5:
+            self.message_start_time = 60
+
+    monkeypatch.setattr(ChunkBuilder, "add_message", starting_late)
+    path = tmp_path / "bag"
+    in_order = _write_chunks(path, CHUNK_STAMPS)
+    monkeypatch.undo()
+    file = path / "bag_0.mcap"
+    offset = _chunk_at(file, 5)
+    read = []
+    with pytest.raises(rosbag.BagDamaged, match=rf"bag_0\.mcap: the record at byte {offset} holds 1 message\(s\) "
+                                                rf"logged from 5 ns, before messages read already \(up to 50 ns\): its "
+                                                rf"chunk index says its messages start at 60 ns\..*--recover"):
+        read.extend(m.log_time_ns for m in BagReader(path))
+    assert read == [0, 10, 20, 30, 40, 50]
+    with pytest.warns(UserWarning, match=rf"byte {offset} holds 1 message\(s\) logged from 5 ns.*; read late, out of "
+                                         "log-time order$"):
+        assert [m.log_time_ns for m in BagReader(path, recover=True)] == [0, 10, 20, 30, 40, 50, 5, 60, 70, 80, 90, 100]
+    with pytest.warns(UserWarning, match="read late"):
+        rosbag.repair(path, tmp_path / "fixed")
+    assert [m.message.data[0] for m in BagReader(tmp_path / "fixed")] == in_order
 
 
 def test_a_summary_that_fails_its_crc_is_not_trusted(tmp_path):

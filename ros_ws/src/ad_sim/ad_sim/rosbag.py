@@ -707,6 +707,8 @@ class BagReader:
     what was recovered or lost; a metadata.yaml that is unusable (not rosbag2 metadata, or naming
     missing files) is passed over with a warning, and the .mcap files beside it are read, as when
     it is missing. If that leaves no message at all, reading (or topics()) raises BagUnreadable.
+    A summary whose chunk indexes start later than their chunks' messages (a writer's error) is an error
+    naming --recover, where it would break the order; recovering reads those messages late, with a warning.
     raw=True yields the CDR bytes instead of decoded messages.
     `problems` lists the reader's warnings, each once however often the files are scanned.
     """
@@ -789,7 +791,7 @@ class BagReader:
             with _mapped(scan.path) as data:
                 summary = self._read_summary(scan, data)
                 if summary is None or not scan.channels:
-                    for _ in self._scan_data(scan, data, summary):
+                    for _ in self._scan_records(scan, data, summary):
                         pass
             for channel in scan.channels.values():
                 schema = scan.schemas.get(channel.schema_id)
@@ -949,41 +951,67 @@ class BagReader:
 
     def _scan_data(self, scan: _FileScan, data, chunk_indexes: list[ChunkIndex] | None
                    ) -> Iterator[tuple[int, int, Channel, bytes]]:
-        """_scan_records with the chunks' start times from the summary's chunk indexes or, without a summary (a
-        killed writer's file), from the chunk records' headers: messages are released in order as the chunks are
-        read, so that a file is not held in memory whole (a killed recorder's can be larger than memory)."""
+        """Messages of the data section as (log_time, order, channel, data), in log-time order (ties in file order).
+
+        Each message is held only until no record after it can hold an earlier one, so that a file is not held in
+        memory whole (a killed recorder's can be larger than memory): that takes each record's earliest log time, from
+        the summary's chunk indexes (under its CRC) or, without a summary, from the messages themselves in a first
+        pass, one record at a time. A chunk's header says it too, but no CRC covers it: a damaged one released messages
+        out of order."""
         if chunk_indexes is None:
-            starts = _chunk_start_times(data)
+            starts = {}
+            for pos, header, messages in self._scan_records(scan, data, None):
+                if messages:
+                    logged = (min(m.log_time for m, _ in messages), max(m.log_time for m, _ in messages))
+                    starts[pos] = logged[0]
+                    if header is not None and (logged[0] < header[0] or logged[1] > header[1]):
+                        self._warn(f"{scan.path}: damaged chunk header at byte {pos}: it gives log times {header[0]} "
+                                   f"to {header[1]} ns, its messages were logged from {logged[0]} to {logged[1]} ns; "
+                                   "read in log-time order by their own times")
         else:
             starts = {c.chunk_start_offset: c.message_start_time for c in chunk_indexes}
-        # chunk offset -> earliest log time in that and every later chunk: once past a chunk,
-        # messages before the next chunk's value can be released in order.
-        release_at: dict[int, int] = {}
-        earliest = None
-        for offset in sorted(starts, reverse=True):
-            earliest = starts[offset] if earliest is None else min(earliest, starts[offset])
-            release_at[offset] = earliest
-        chunk_lengths = {c.chunk_start_offset: c.chunk_length for c in chunk_indexes or []}
-        yield from self._scan_records(scan, data, release_at or None, chunk_lengths)
-
-    def _scan_records(self, scan: _FileScan, data, release_at: dict[int, int] | None,
-                      chunk_lengths: dict[int, int] | None = None) -> Iterator[tuple[int, int, Channel, bytes]]:
-        """Read the data section record by record; without `release_at` the file is sorted whole.
-
-        `chunk_lengths` (chunk offset -> record length, from a summary that passed its CRC): each is checked to hold
-        a chunk record of that length, and a damaged record header cannot hide the chunks after it: reading goes on
-        at the next chunk the summary lists (without it, a damaged header ends what can be read, as a cut does)."""
-        chunk_offsets = sorted(release_at) if release_at else []
-        listed = sorted(chunk_lengths) if chunk_lengths else []
+        offsets = sorted(starts)
+        # earliest log time in the record at offsets[i] and every later one: once past offsets[i - 1], messages up to
+        # it are released in order.
+        release_at = list(itertools.accumulate((starts[o] for o in reversed(offsets)), min))[::-1]
         pending: list[tuple[int, int, Channel, bytes]] = []
         order = 0
+        released = None  # log time of the last message released
+        for pos, _, messages in self._scan_records(scan, data, chunk_indexes):
+            # Only a summary's chunk index can start too late (a writer's error): without one, starts are the messages'.
+            if early := [m.log_time for m, _ in messages if released is not None and m.log_time < released]:
+                cause = (f"its chunk index says its messages start at {starts[pos]} ns" if pos in starts
+                         else "the summary's chunk indexes do not list it")
+                where = (f"{scan.path}: the record at byte {pos} holds {len(early)} message(s) logged from {min(early)} "
+                         f"ns, before messages read already (up to {released} ns): {cause}")
+                if not self.recover:
+                    raise BagDamaged(f"{where}. To read such messages late and report them, {RECOVER_ADVICE}")
+                self._warn(f"{where}; read late, out of log-time order")
+            for message, channel in messages:
+                heapq.heappush(pending, (message.log_time, order, channel, message.data))
+                order += 1
+            following = bisect.bisect_right(offsets, pos)
+            while pending and following < len(offsets) and pending[0][0] <= release_at[following]:
+                released = pending[0][0]
+                yield heapq.heappop(pending)
+        while pending:
+            yield heapq.heappop(pending)
+
+    def _scan_records(self, scan: _FileScan, data, chunk_indexes: list[ChunkIndex] | None
+                      ) -> Iterator[tuple[int, tuple[int, int] | None, list[tuple[Message, Channel]]]]:
+        """The data section record by record: (offset, a chunk's (message_start_time, message_end_time) from its
+        header or None, the record's messages with their channels); its schemas and channels go into `scan`, and once
+        read to its end, the count of its messages and what a truncated file recovered.
+
+        `chunk_indexes` (from a summary that passed its CRC): each is checked to hold a chunk record of its length, and
+        a damaged record header cannot hide the chunks after it: reading goes on at the next chunk the summary lists
+        (without it, a damaged header ends what can be read, as a cut does)."""
+        chunk_lengths = {c.chunk_start_offset: c.chunk_length for c in chunk_indexes or []}
+        listed = sorted(chunk_lengths)
+        count = 0
         pos = MAGIC_SIZE
         size = len(data)
         cut_at = None  # where the incomplete last record of a recovered file starts
-
-        def release(until: int | None) -> Iterator[tuple[int, int, Channel, bytes]]:
-            while pending and (until is None or pending[0][0] <= until):
-                yield heapq.heappop(pending)
 
         def header(opcode: int | None, length: int) -> str:
             return "an incomplete record header" if opcode is None else f"opcode 0x{opcode:02x}, {9 + length} bytes"
@@ -996,9 +1024,6 @@ class BagReader:
                     self._problem(scan, f"{scan.path}: corrupt record at byte {pos}: the summary lists a chunk of "
                                         f"{expected} bytes there, the record's header says {header(opcode, length)}",
                                   "skipped it and the messages in it")
-                    following = bisect.bisect_right(chunk_offsets, pos)
-                    if following < len(chunk_offsets):
-                        yield from release(release_at[chunk_offsets[following]])
                     pos += expected
                     continue
             elif (following := bisect.bisect_right(listed, pos)) < len(listed) and (
@@ -1023,9 +1048,12 @@ class BagReader:
                     )
                 cut_at = pos
                 break
+            times = None
             try:
                 if opcode == Opcode.CHUNK:
-                    records = breakup_chunk(Chunk.read(ReadDataStream(io.BytesIO(data[pos + 9 : end]))), validate_crc=True)
+                    chunk = Chunk.read(ReadDataStream(io.BytesIO(data[pos + 9 : end])))
+                    times = (chunk.message_start_time, chunk.message_end_time)
+                    records = breakup_chunk(chunk, validate_crc=True)
                 elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
                     stream = ReadDataStream(io.BytesIO(data[pos + 9 : end]))
                     records = [Message.read(stream, length) if opcode == Opcode.MESSAGE else _RECORD_TYPES[opcode].read(stream)]
@@ -1040,6 +1068,7 @@ class BagReader:
                 )
                 pos = end
                 continue
+            messages = []
             for record in records:
                 if isinstance(record, Schema):
                     scan.schemas[record.id] = record
@@ -1051,34 +1080,15 @@ class BagReader:
                         self._problem(scan, f"{scan.path}: message at byte {pos} names unknown channel "
                                             f"{record.channel_id}", "skipped it")
                         continue
-                    heapq.heappush(pending, (record.log_time, order, channel, record.data))
-                    order += 1
-            if chunk_offsets and opcode == Opcode.CHUNK:
-                following = bisect.bisect_right(chunk_offsets, pos)
-                if following < len(chunk_offsets):
-                    yield from release(release_at[chunk_offsets[following]])
+                    messages.append((record, channel))
+            count += len(messages)
+            yield pos, times, messages
             pos = end
-        scan.messages = order
+        scan.messages = count
         if scan.truncated or cut_at is not None:
             lost = "" if cut_at is None else f"; the last {size - cut_at} bytes (an incomplete record at byte {cut_at}) are lost"
-            scan.recovered = f"{scan.path} {scan.truncated or 'is truncated or corrupt'}: recovered {order} messages{lost}"
+            scan.recovered = f"{scan.path} {scan.truncated or 'is truncated or corrupt'}: recovered {count} messages{lost}"
             scan.damage = scan.damage or "is damaged before its first complete chunk"
-        yield from release(None)
-
-
-def _chunk_start_times(data) -> dict[int, int]:
-    """Offset -> message_start_time of each chunk record, walking the data section's record headers as
-    _scan_records does (up to an incomplete record, a data end or a footer), without decompressing anything."""
-    starts = {}
-    pos, size = MAGIC_SIZE, len(data)
-    while pos + 9 <= size:
-        opcode, length = data[pos], struct.unpack_from("<Q", data, pos + 1)[0]
-        if pos + 9 + length > size or opcode in (Opcode.DATA_END, Opcode.FOOTER):
-            break
-        if opcode == Opcode.CHUNK and length >= 8:
-            starts[pos] = struct.unpack_from("<Q", data, pos + 9)[0]
-        pos += 9 + length
-    return starts
 
 
 @dataclass
