@@ -378,11 +378,19 @@ class EstimatorModel:
         return self.info.model_id
 
     def prepare(self, mask: np.ndarray) -> np.ndarray:
-        """Binary uint8 mask (0/255; levels 0..255 for a coverage model) of any size -> float32 (H, W) in
-        [0, 1] at the model's input size: first the simulator's mask (as_simulator_mask), then area
-        interpolation, as training does."""
+        """Binary uint8 mask (0/255, non-zero being object; levels 0..255 for a coverage model) of any size,
+        as images.image_to_mask and images.array_to_mask make it -> float32 (H, W) in [0, 1] at the model's
+        input size: first the simulator's mask (as_simulator_mask), then area interpolation, as training
+        does. ValueError for anything but a 2-D uint8 array."""
+        if not isinstance(mask, np.ndarray) or mask.ndim != 2 or mask.dtype != np.uint8:
+            # a bool or float 0..1 mask read as levels would give a plausible but wrong estimate
+            raise ValueError(f"a frame is a 2-D uint8 mask, got {getattr(mask, 'dtype', type(mask).__name__)} of shape "
+                             f"{np.shape(mask)}; make it with ad_estimator.images.array_to_mask")
         h, w = self.info.input_size
-        mask = as_simulator_mask(mask, self.info.mask_levels == "coverage")
+        coverage = self.info.mask_levels == "coverage"
+        mask = as_simulator_mask(mask, coverage)
+        if not coverage:  # non-zero is object, as at other sizes: a 128x128 0/1 mask was read as nearly empty
+            mask = (mask != 0).astype(np.uint8) * np.uint8(255)
         if mask.shape != (h, w):
             mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_AREA)
         return mask.astype(np.float32) * np.float32(1.0 / 255.0)
@@ -390,6 +398,8 @@ class EstimatorModel:
     def encode(self, mask: np.ndarray, earlier: Sequence[np.ndarray] = ()) -> np.ndarray:
         """Feature of one frame: the prepared mask (clip models) or its embedding (streaming models).
 
+        ``mask``: see prepare; it must not change afterwards (a stream's recent frames are recognised as
+        the same objects, so a reused buffer would be read as the frame it held first).
         ``earlier``: the episode's earlier observed masks, newest first (empty for its first frame);
         only the first ``info.previous_frames`` are read. Where fewer are given, the oldest one given
         (or the mask itself) stands in for the missing ones, as in training."""

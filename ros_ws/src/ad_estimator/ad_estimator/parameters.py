@@ -87,7 +87,9 @@ def _within(name: str, values: dict) -> bool:
 
 def model_window(values: dict, info) -> FrameWindow:
     """The node's window for a model (`info`: its ModelInfo): the model's frame interval, frame count
-    and earlier frames; min_frames capped at the frame count."""
+    and earlier frames; min_frames capped at the frame count. Parameters missing from `values` take
+    the node's defaults (model_window({}, info) is the node's default window)."""
+    values = {name: default for name, (default, _) in PARAMETERS.items()} | values
     return FrameWindow(info.frame_interval, info.frame_count, gap_threshold=values["gap_threshold"],
                        slot_tolerance=values["slot_tolerance"], policy=values["output_policy"],
                        every_n=values["every_n"], min_frames=min(values["min_frames"], info.frame_count),

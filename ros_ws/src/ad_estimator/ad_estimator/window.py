@@ -51,6 +51,7 @@ always one when the window is complete, and one on flush if slots were settled s
 from __future__ import annotations
 
 import math
+import operator
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Callable
@@ -204,11 +205,18 @@ class FrameWindow:
         return [out for frame_args in frames for out in self._offer(*frame_args)]
 
     def add(self, stamp_ns: int, frame: np.ndarray, encode: Encode) -> list[WindowOutput]:
-        """Offer one frame (stamp in ns); ``encode(frame, earlier)`` is called only if it lands in a slot.
+        """Offer one frame (stamp: whole ns, a Python or NumPy integer); ``encode(frame, earlier)`` is
+        called only if it lands in a slot.
 
         Returns the estimates due now: usually none; the previous episode's last one when this frame
         restarts the window (see flush); at most one for the current episode.
         """
+        try:
+            # a NumPy stamp wraps (uint64 went "backwards" at every frame: no estimate) or overflows
+            stamp_ns = operator.index(stamp_ns)
+        except TypeError:
+            raise TypeError(f"stamp_ns is a whole number of nanoseconds, got {type(stamp_ns).__name__} {stamp_ns!r}; "
+                            "from seconds: round(t * 1e9)") from None
         self.stats.frames += 1
         size = frame.shape
         outputs: list[WindowOutput] = []
