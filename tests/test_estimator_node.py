@@ -1,4 +1,5 @@
 """The estimator node over real DDS (rclpy, in-process executor) with real onnxruntime models."""
+import itertools
 import re
 import signal
 import subprocess
@@ -725,6 +726,31 @@ def test_clean_shutdown_on_signals(model_paths, sig, ros_domain_id):
     out = "".join(lines) + proc.communicate(timeout=20)[0]
     assert proc.returncode == 0, out
     assert "Traceback" not in out and "shutting down" in out
+
+
+def test_signals_in_a_row_through_the_shutdown_exit_cleanly(model_paths, ros_domain_id):
+    """SIGINT, then SIGINT and SIGTERM about every millisecond until the node exits (Ctrl-C pressed again and again,
+    launch escalating): the second cuts finishing the input short, the rest change nothing. Each later signal raised
+    KeyboardInterrupt wherever the main thread was: a traceback out of rclpy destroying the node, an abort (C++
+    terminate) from a thread left in rclpy, or, as the interpreter exited, death by the signal itself."""
+    proc = run_node("-p", f"model_path:={model_paths['streaming']}", "-r", "mask:=/estimator_test/signals")
+    try:
+        lines = []
+        while not any("model test-streaming" in line for line in lines):
+            lines.append(proc.stdout.readline())
+            if not lines[-1]:
+                raise AssertionError("".join(lines))
+        signals = itertools.cycle([signal.SIGINT, signal.SIGTERM])
+        while proc.poll() is None:
+            proc.send_signal(next(signals))
+            time.sleep(0.001)
+        out = "".join(lines) + proc.communicate(timeout=20)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and "Traceback" not in out and "terminate called" not in out, out
+    assert out.count("shutting down") == 1, out
 
 
 def test_the_installed_example_params_file_configures_the_node(model_paths, ros_domain_id):

@@ -131,9 +131,9 @@ GOOD = {"shape": "sphere", "material": "plasticine", "parameters": {"youngs_modu
 @pytest.mark.parametrize(
     "change, message",
     [
-        ({"shape": "teapot-x"}, r"entry 1 \(teapot-x\): field 'shape': unknown shape"),
-        ({"material": "rubber"}, r"entry 1 \(sphere\): field 'material': unknown material"),
-        ({"parameters": {**GOOD["parameters"], "stiffness": 1.0}}, r"entry 1 \(sphere\): field 'parameters.stiffness': unknown parameter"),
+        ({"shape": "teapot-x"}, r"entry 1 \('teapot-x'\): field 'shape': unknown shape"),
+        ({"material": "rubber"}, r"entry 1 \('sphere'\): field 'material': unknown material"),
+        ({"parameters": {**GOOD["parameters"], "stiffness": 1.0}}, r"entry 1 \('sphere'\): field 'parameters.stiffness': unknown parameter"),
         ({"parameters": {**GOOD["parameters"], "friction_angle": 0.3}}, r"field 'parameters.friction_angle': plasticine has no such parameter"),
         ({"parameters": {**GOOD["parameters"], "youngs_modulus": 1e7}}, r"field 'parameters.youngs_modulus': 10000000.0 is outside"),
         ({"parameters": {"youngs_modulus": 1e5, "poissons_ratio": 0.4}}, r"field 'parameters': missing \['yield_stress'\]"),
@@ -162,7 +162,7 @@ def test_instance_file_errors_name_entry_and_field(tmp_path, change, message):
 def test_instance_file_structure_errors(tmp_path):
     missing = tmp_path / "missing.yaml"
     missing.write_text("- {shape: sphere, material: jelly, seed: 1}\n")
-    with pytest.raises(ValueError, match=r"entry 0 \(sphere\): missing field 'parameters'"):
+    with pytest.raises(ValueError, match=r"entry 0 \('sphere'\): missing field 'parameters'"):
         load_instance_file(missing)
     not_a_list = tmp_path / "dict.yaml"
     not_a_list.write_text("shape: sphere\n")
@@ -186,13 +186,13 @@ def test_episode_ids_with_control_or_invisible_characters_are_refused(tmp_path, 
 
     path = tmp_path / "ids.json"
     path.write_text(json.dumps([GOOD, GOOD | {"episode_id": episode_id, "seed": 2}]))
-    with pytest.raises(ValueError, match=r"ids.json: entry 1 \(sphere\): field 'episode_id': expected one line of "
+    with pytest.raises(ValueError, match=r"ids.json: entry 1 \('sphere'\): field 'episode_id': expected one line of "
                                          r"printable characters") as caught:
         load_instance_file(path)
     assert "\n" not in str(caught.value) and str(caught.value).endswith(f"got {episode_id!r}")
     bad = Instance(episode_id=episode_id, split="custom", shape="box", material="jelly",
                    parameters={"youngs_modulus": 1e5, "poissons_ratio": 0.3}, seed=1)
-    with pytest.raises(ValueError, match=r"\(not written\): entry 0 \(box\): field 'episode_id'"):
+    with pytest.raises(ValueError, match=r"\(not written\): entry 0 \('box'\): field 'episode_id'"):
         write_instance_file([bad], tmp_path / "out.yaml")
 
 
@@ -218,13 +218,13 @@ SOFT = "shape: sphere, material: jelly, parameters: {youngs_modulus: 1.0e+5, poi
     [
         # a key given twice was silently the last one
         ("twice.yaml", "- {shape: sphere, material: jelly, parameters: {youngs_modulus: 1.0e+5, poissons_ratio: 0.3, "
-         "poissons_ratio: 0.25}, seed: 1}\n", r"entry 0 \(sphere\): field 'parameters.poissons_ratio': given twice"),
-        ("twice.yaml", f"- {{{SOFT}, seed: 1}}\n- {{{SOFT}, seed: 2, seed: 3}}\n", r"entry 1 \(sphere\): field 'seed': given twice"),
-        ("twice.json", json.dumps([GOOD])[:-2] + ', "seed": 5}]', r"entry 0 \(sphere\): field 'seed': given twice"),
+         "poissons_ratio: 0.25}, seed: 1}\n", r"entry 0 \('sphere'\): field 'parameters.poissons_ratio': given twice"),
+        ("twice.yaml", f"- {{{SOFT}, seed: 1}}\n- {{{SOFT}, seed: 2, seed: 3}}\n", r"entry 1 \('sphere'\): field 'seed': given twice"),
+        ("twice.json", json.dumps([GOOD])[:-2] + ', "seed": 5}]', r"entry 0 \('sphere'\): field 'seed': given twice"),
         ("twice.json", '[{"shape": "sphere", "material": "jelly", "parameters": {"youngs_modulus": 1e5, '
          '"poissons_ratio": 0.3, "poissons_ratio": 0.25}, "seed": 1}]', r"field 'parameters.poissons_ratio': given twice"),
         # YAML 1.1 reads 010 as 8 and 1:30 as 90: silently another seed than the one written
-        ("octal.yaml", f"- {{{SOFT}, seed: 010}}\n", r"octal.yaml: not valid YAML: 010 is read by YAML 1.1 as the octal number 8 .* at line 1, column"),
+        ("octal.yaml", f"- {{{SOFT}, seed: 010}}\n", r"octal.yaml: not valid YAML: '010' is read by YAML 1.1 as the octal number 8 .* at line 1, column"),
         ("base60.yaml", f"- {{{SOFT}, seed: 1:30}}\n", r"base60.yaml: not valid YAML: .*1:30.* base 60 .*90.* at line 1"),
         ("base60.yaml", f"- {{{SOFT}, seed: 1, views: 1:00.5}}\n", r"not valid YAML: .*1:00.5.* base 60"),
         # near misses name what was probably meant
@@ -238,7 +238,7 @@ SOFT = "shape: sphere, material: jelly, parameters: {youngs_modulus: 1.0e+5, poi
         ("degrees.yaml", "- {shape: box, material: sand, parameters: {friction_angle: 30}, seed: 1}\n",
          r"friction_angle': 30 is outside .*\(radians\); 30 degrees is 0.5236 rad"),
         # keys of mixed types were a TypeError traceback (sorting 1 and 'colour')
-        ("mixed.yaml", f"- {{{SOFT}, seed: 1, 1: x, colour: red}}\n", r"entry 0 \(sphere\): unknown field\(s\) \[1, 'colour'\]"),
+        ("mixed.yaml", f"- {{{SOFT}, seed: 1, 1: x, colour: red}}\n", r"entry 0 \('sphere'\): unknown field\(s\) \[1, 'colour'\]"),
         ("mapping.yaml", "shape: sphere\nmaterial: jelly\nparameters: {youngs_modulus: 1.0e+5, poissons_ratio: 0.3}\nseed: 1\n", r"non-empty list .*got a mapping \(write one entry as a list of one"),
         # pose and velocity are not fields: they come from the seed
         ("pose.yaml", f"- {{{SOFT}, seed: 1, velocity: [0, 0, -1]}}\n", r"unknown field\(s\) \['velocity'\].*drawn from 'seed'"),
@@ -250,6 +250,36 @@ def test_hand_written_mistakes_are_one_line_errors(tmp_path, name, text, message
     with pytest.raises(ValueError, match=message) as caught:
         load_instance_file(path)
     assert "\n" not in str(caught.value) and str(path) in str(caught.value)
+
+
+PARAMETERS = "parameters: {youngs_modulus: 1.0e+5, poissons_ratio: 0.3}"
+
+
+@pytest.mark.parametrize(
+    "text, shown",
+    [
+        # the shape names the entry in every error of it
+        (f'- {{shape: "sph\\nere", material: jelly, {PARAMETERS}, seed: 1}}\n',
+         r"entry 0 ('sph\nere'): field 'shape': unknown shape 'sph\nere'"),
+        (f'- {{shape: sphere, material: jelly, {PARAMETERS}, "x\\ny": 1, "x\\ny": 2, seed: 1}}\n',
+         r"entry 0 ('sphere'): field 'x\ny': given twice"),
+        ('- {shape: sphere, material: jelly, parameters: {"a\\nb": 1, "a\\nb": 2}, seed: 1}\n',
+         r"field 'parameters.a\nb': given twice"),
+        ('- {shape: sphere, material: jelly, parameters: {"youngs\\nmodulus": 1.0e+5}, seed: 1}\n',
+         r"field 'parameters.youngs\nmodulus': unknown parameter"),
+        (f'- {{shape: sphere, material: jelly, {PARAMETERS}, seed: !!int "1:30\\n"}}\n',
+         r"not valid YAML: '1:30\n' is read by YAML 1.1 as the base 60 number 90"),
+    ],
+    ids=["shape", "field-twice", "parameter-twice", "unknown-parameter", "tagged-number"],
+)
+def test_text_from_the_file_is_escaped_in_its_one_line_errors(tmp_path, text, shown):
+    """A newline in a shape, a field name or a number's text split the error in two lines."""
+    path = tmp_path / "newlines.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError) as caught:
+        load_instance_file(path)
+    assert "\n" not in str(caught.value), str(caught.value)
+    assert shown in str(caught.value)
 
 
 def test_yaml_merge_keys_and_plain_numbers_still_load(tmp_path):
@@ -317,7 +347,7 @@ def test_an_instance_a_file_cannot_hold_is_not_written(tmp_path):
     stiff = Instance(episode_id="stiff", split="custom", shape="box", material="jelly",
                      parameters={"youngs_modulus": 1e7, "poissons_ratio": 0.3}, seed=1)
     path = tmp_path / "out.yaml"
-    with pytest.raises(ValueError, match=r"out.yaml \(not written\): entry 1 \(box\): field 'parameters.youngs_modulus'"):
+    with pytest.raises(ValueError, match=r"out.yaml \(not written\): entry 1 \('box'\): field 'parameters.youngs_modulus'"):
         write_instance_file([make(1), stiff], path)
     assert not path.exists()
 

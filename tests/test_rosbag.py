@@ -146,6 +146,23 @@ def test_reader_orders_by_log_time_across_chunks(tmp_path):
     assert [m.message.data[0] for m in read if m.log_time_ns == 5] == [i for i, s in enumerate(stamps) if s == 5]
 
 
+def write_killed_bag(path: Path, stamps: list[int]) -> None:
+    """A bag whose writer was killed (no summary), one message per chunk on /a, the i-th stamped stamps[i]."""
+    writer = BagWriter(path, chunk_size=1)  # one message per chunk
+    writer.add_topic("/a", "sensor_msgs/msg/Image")
+    for i, stamp in enumerate(stamps):
+        writer.write("/a", stamp, messages.mask_message(np.full((1, 1), i, np.uint8), stamp, "f"))
+    writer._stream.close()  # never closed: no summary, as after a kill -9
+
+
+def count_decompressions(monkeypatch) -> list:
+    """A list that grows by one each time the reader decompresses a chunk."""
+    decompressed = []
+    breakup_chunk = rosbag.breakup_chunk
+    monkeypatch.setattr(rosbag, "breakup_chunk", lambda *a, **k: decompressed.append(1) or breakup_chunk(*a, **k))
+    return decompressed
+
+
 def test_a_killed_writers_file_is_read_chunk_by_chunk_in_log_time_order(tmp_path, monkeypatch):
     """A file without a summary (a killed recorder's): every message of it was decompressed and held before the
     first was yielded, so recovering (or repairing) a large unsplit recording needed memory for all of it (369 MB
@@ -154,14 +171,8 @@ def test_a_killed_writers_file_is_read_chunk_by_chunk_in_log_time_order(tmp_path
     released as the chunks are read again, as with a summary, in the same order."""
     path = tmp_path / "killed"
     stamps = [i * 10 + (15 if i % 3 == 1 else 0) for i in range(60)]  # out of order from chunk to chunk
-    writer = BagWriter(path, chunk_size=1)  # one message per chunk
-    writer.add_topic("/a", "sensor_msgs/msg/Image")
-    for i, stamp in enumerate(stamps):
-        writer.write("/a", stamp, messages.mask_message(np.full((1, 1), i, np.uint8), stamp, "f"))
-    writer._stream.close()  # never closed: no summary, as after a kill -9
-    decompressed = []
-    breakup_chunk = rosbag.breakup_chunk
-    monkeypatch.setattr(rosbag, "breakup_chunk", lambda *a, **k: decompressed.append(1) or breakup_chunk(*a, **k))
+    write_killed_bag(path, stamps)
+    decompressed = count_decompressions(monkeypatch)
     with pytest.warns(UserWarning, match="truncated"):
         read = iter(BagReader(path, recover=True))
         first = next(read)
@@ -169,6 +180,24 @@ def test_a_killed_writers_file_is_read_chunk_by_chunk_in_log_time_order(tmp_path
         rest = list(read)
     assert [m.log_time_ns for m in [first, *rest]] == sorted(stamps)
     assert [m.message.data[0] for m in [first, *rest]] == sorted(range(60), key=lambda i: stamps[i])
+
+
+def test_topics_then_reading_walk_a_killed_writers_file_once_each(tmp_path, monkeypatch):
+    """training/data.py asks topics() before it reads a bag. Of a file without a summary, both walked all the records
+    (decompressing every chunk), and reading walked them twice (its first pass learns each chunk's start time): three
+    walks. The reader keeps what a walk learned: reading after topics() walks the file once, to yield the messages."""
+    path = tmp_path / "killed"
+    stamps = [i * 10 + (15 if i % 3 == 1 else 0) for i in range(60)]
+    write_killed_bag(path, stamps)
+    decompressed = count_decompressions(monkeypatch)
+    reader = BagReader(path, recover=True)
+    with pytest.warns(UserWarning, match="truncated"):
+        assert reader.topics() == {"/a": "sensor_msgs/msg/Image"}
+        walk = len(decompressed)
+        assert [m.log_time_ns for m in reader] == sorted(stamps)
+        assert walk == len(stamps) and len(decompressed) == 2 * walk, f"{len(decompressed) / walk} walks"
+        assert reader.topics() == {"/a": "sensor_msgs/msg/Image"} and len(decompressed) == 2 * walk  # no walk
+        assert [m.log_time_ns for m in reader] == sorted(stamps) and len(decompressed) == 3 * walk
 
 
 def test_independent_reader_decodes_with_types_from_the_bag(bag):

@@ -204,7 +204,7 @@ def test_an_instance_file_with_too_many_views_is_one_line_at_start(ros_domain_id
     process = start("node", ros_domain_id, tmp_path / "bad.log", instances=str(path), real_time_factor=0)
     assert process.wait(60) == 2
     log = (tmp_path / "bad.log").read_text()
-    assert log.splitlines()[-1] == (f"ad_sim node: {path}: entry 0 (sphere): field 'views': expected an integer in "
+    assert log.splitlines()[-1] == (f"ad_sim node: {path}: entry 0 ('sphere'): field 'views': expected an integer in "
                                     "[1, 16], got 100000000"), log
 
 

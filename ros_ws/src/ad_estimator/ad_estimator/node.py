@@ -547,16 +547,13 @@ class EstimatorNode(Node):
 
     def destroy_node(self) -> None:
         self._stop.set()
-        try:  # the threads finish what they do (a clip call: up to 2 s more)
-            if self.worker.is_alive():
-                self.worker.join(timeout=2.0)
-            if self.clip_server.is_alive():
-                self.clip_server.join(timeout=2.0)
-            self.clip_executor.shutdown(timeout_sec=1.0)
-        except KeyboardInterrupt:
-            # A second Ctrl-C while they do: stop waiting. Raised out of here, it skipped the clean-up below and
-            # rclpy's shutdown, and the process died of a traceback and an abort (C++ terminate) instead.
-            pass
+        # The threads finish what they do (a clip call: up to 2 s more), whatever signal comes meanwhile (StopSignals):
+        # a thread still in rclpy or onnxruntime when the interpreter exits aborts the process (C++ terminate).
+        if self.worker.is_alive():
+            self.worker.join(timeout=2.0)
+        if self.clip_server.is_alive():
+            self.clip_server.join(timeout=2.0)
+        self.clip_executor.shutdown(timeout_sec=1.0)
         self.clip_node.destroy_node()
         super().destroy_node()
 
@@ -585,20 +582,41 @@ def make_executor(context=None) -> SingleThreadedExecutor:
 class StopSignals:
     """SIGINT and SIGTERM (what launch sends) as a request to stop: the node then finishes its input (finish)
     before the context goes. rclpy's own handlers shut the context down at once, and the estimates of frames
-    still queued or of the window not yet flushed were lost. A second signal stops waiting (KeyboardInterrupt
-    wherever the main thread waits)."""
+    still queued or of the window not yet flushed were lost. A later signal cuts that wait short (KeyboardInterrupt,
+    raised only inside `interruptible`) and is otherwise ignored: the clean-up is short (its waits have time limits)
+    and must run to its end. Raised wherever the main thread was, a third Ctrl-C (or launch's SIGTERM after its
+    SIGINT) came out of rclpy destroying the node as a traceback, or of a thread left in rclpy as an abort."""
 
     def __init__(self):
         self.requested = threading.Event()
+        self._interruptible = False  # set by the main thread while a later signal may cut its wait short
 
     def install(self) -> None:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self)
 
     def __call__(self, signum, frame) -> None:
-        if self.requested.is_set():
+        if not self.requested.is_set():
+            self.requested.set()
+        elif self._interruptible:
+            self._interruptible = False  # one KeyboardInterrupt: none while it is being handled
             raise KeyboardInterrupt
-        self.requested.set()
+
+    def interruptible(self, wait) -> None:
+        """wait(), cut short by a later signal."""
+        self._interruptible = True
+        try:
+            wait()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            self._interruptible = False
+
+    def ignore(self) -> None:
+        """Once the clean-up is done: the interpreter's exit puts back the default action (death by the signal) of
+        every signal with a Python handler, though not of an ignored one."""
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
 
 
 def main(args=None) -> int:
@@ -628,29 +646,27 @@ def main(args=None) -> int:
         if failure:
             raise failure[0]
         if rclpy.ok():
-            node.finish()
+            stop.interruptible(node.finish)
     except (ModelError, ValueError, ParameterException) as exc:
         print(f"ad_estimator: {exc}", file=sys.stderr)
         return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass  # a second signal, or one during start-up: a clean exit
+    except ExternalShutdownException:
+        pass  # the context shut down under the executor: a clean exit
     except RCLError:
         if rclpy.ok():
             raise
         # the context shut down while rclpy was still setting something up: also clean
     finally:
-        try:
-            if executor is not None:
-                executor.shutdown(timeout_sec=1.0)
-            if spinner is not None:
-                spinner.join(timeout=1.0)
-        except KeyboardInterrupt:
-            pass  # another signal: stop waiting for the executor
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
+        if spinner is not None:
+            spinner.join(timeout=1.0)
         if node is not None:
             # print, not the ROS logger: it must come out whatever state the context is in
             print(f"ad_estimator: shutting down: {node.statistics()}", file=sys.stderr, flush=True)
             node.destroy_node()
         rclpy.try_shutdown()
+        stop.ignore()
     return 0
 
 

@@ -255,7 +255,7 @@ def _json_object(pairs) -> _Mapping:
 def _check_repeated(mapping, where: str, prefix: str = "") -> None:
     repeated = getattr(mapping, "repeated", ())
     if repeated:
-        raise ValueError(f"{where}: field '{prefix}{repeated[0]}': given twice in one mapping; give each field once")
+        raise ValueError(f"{where}: field {prefix + str(repeated[0])!r}: given twice in one mapping; give each field once")
 
 
 
@@ -291,7 +291,7 @@ def _validate_parameters(family: str, given, where: str) -> dict[str, float]:
     for name, value in given.items():
         if name not in materials.PARAMETER_NAMES:
             raise ValueError(
-                f"{where}: field 'parameters.{name}': unknown parameter{_did_you_mean(name, materials.PARAMETER_NAMES)}; "
+                f"{where}: field {'parameters.' + str(name)!r}: unknown parameter{_did_you_mean(name, materials.PARAMETER_NAMES)}; "
                 f"expected names from {materials.PARAMETER_NAMES}"
             )
         if name not in ranges:
@@ -324,8 +324,8 @@ def instance_from_entry(entry, index: int, source: str) -> Instance:
     where = f"{source}: entry {index}"
     if not isinstance(entry, dict):
         raise ValueError(f"{where}: expected a mapping with fields {list(_REQUIRED_FIELDS)}, got {entry!r}")
-    if "shape" in entry:
-        where += f" ({entry['shape']})"
+    if "shape" in entry:  # as every text from the file, by repr: a newline in it split the one-line error
+        where += f" ({entry['shape']!r})"
     _check_repeated(entry, where)
     allowed = _REQUIRED_FIELDS + _OPTIONAL_FIELDS
     unknown = sorted(set(entry) - set(allowed), key=str)
@@ -400,9 +400,9 @@ def _yaml_loader():
             digits = text.replace("_", "").lstrip("+-")
             value = construct(self, node)
             if ":" in digits:
-                problem = f"{text} is read by YAML 1.1 as the base 60 number {value} (write {value}; quote a name)"
+                problem = f"{text!r} is read by YAML 1.1 as the base 60 number {value} (write {value}; quote a name)"
             elif re.fullmatch(r"0[0-7]+", digits):
-                problem = (f"{text} is read by YAML 1.1 as the octal number {value} (write {value}, or "
+                problem = (f"{text!r} is read by YAML 1.1 as the octal number {value} (write {value}, or "
                            f"{int(digits)} without the leading zero; quote a name)")
             else:
                 return value

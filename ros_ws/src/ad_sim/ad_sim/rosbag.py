@@ -628,7 +628,7 @@ class BagMessage(NamedTuple):
 
 @dataclass
 class _FileScan:
-    """State of reading one .mcap file."""
+    """State of reading one .mcap file, kept by its BagReader from one pass over the files to the next."""
 
     path: Path
     schemas: dict[int, Schema] = field(default_factory=dict)
@@ -638,6 +638,8 @@ class _FileScan:
     damage: str = ""  # when recovering: how the file is damaged, said if nothing is readable in the bag
     messages: int | None = None  # messages read, once the file's records are scanned
     recovered: str = ""  # when recovering a truncated file: what was recovered and lost, said after the scan
+    # Without a summary: the earliest log time of each data-section record holding messages, by offset, once walked
+    starts: dict[int, int] | None = None
 
 
 _RECORD_TYPES = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel}
@@ -710,7 +712,8 @@ class BagReader:
     A summary whose chunk indexes start later than their chunks' messages (a writer's error) is an error
     naming --recover, where it would break the order; recovering reads those messages late, with a warning.
     raw=True yields the CDR bytes instead of decoded messages.
-    `problems` lists the reader's warnings, each once however often the files are scanned.
+    `problems` lists the reader's warnings, each once however often the files are scanned. What a walk over a file
+    without a summary learns (its topics, its chunks' start times) is kept: topics() then reading walks it twice.
     """
 
     def __init__(
@@ -728,6 +731,7 @@ class BagReader:
         self.metadata: dict | None = None
         self.problems: list[str] = []
         self.files = self._find_files()
+        self._scans = [_FileScan(path) for path in self.files]
         self._decoder_factory = DecoderFactory()
 
     def _find_files(self) -> list[Path]:
@@ -786,25 +790,25 @@ class BagReader:
     def topics(self) -> dict[str, str]:
         """topic -> message type over all files (from the summaries; files without one are scanned)."""
         result = {}
-        scans = [_FileScan(path) for path in self.files]
-        for scan in scans:
+        for scan in self._scans:
             with _mapped(scan.path) as data:
                 summary = self._read_summary(scan, data)
-                if summary is None or not scan.channels:
+                if summary is None:
+                    self._record_starts(scan, data)  # the walk that reading takes first, made once
+                elif not scan.channels:
                     for _ in self._scan_records(scan, data, summary):
                         pass
             for channel in scan.channels.values():
                 schema = scan.schemas.get(channel.schema_id)
                 result[channel.topic] = schema.name if schema else ""
-        self._scanned(scans)
+        self._scanned(self._scans)
         return result
 
     def __iter__(self) -> Iterator[BagMessage]:
-        scans = [_FileScan(path) for path in self.files]
-        streams = [self._iter_file(i, scan) for i, scan in enumerate(scans)]
+        streams = [self._iter_file(i, scan) for i, scan in enumerate(self._scans)]
         for log_time, _, topic, message in heapq.merge(*streams, key=lambda item: (item[0], item[1])):
             yield BagMessage(topic, log_time, message)
-        self._scanned(scans)
+        self._scanned(self._scans)
 
     def _scanned(self, scans: list[_FileScan]) -> None:
         """After a pass over the files: BagUnreadable if recovering found no message in any of them
@@ -919,15 +923,15 @@ class BagReader:
             self._problem(scan, f"{scan.path}: corrupt summary section at byte {footer.summary_start} (its CRC does "
                                 "not match)", "reading the data section instead")
             return None
-        chunk_indexes = []
+        chunk_indexes, schemas, channels = [], {}, {}
         try:
             for record in StreamReader(io.BytesIO(data[footer.summary_start :]), skip_magic=True).records:
                 if isinstance(record, ChunkIndex):
                     chunk_indexes.append(record)
                 elif isinstance(record, Schema):
-                    scan.schemas[record.id] = record
+                    schemas[record.id] = record
                 elif isinstance(record, Channel):
-                    scan.channels[record.id] = record
+                    channels[record.id] = record
             end = MAGIC_SIZE  # chunks lie in the data section, one after another
             for chunk_index in sorted(chunk_indexes, key=lambda c: c.chunk_start_offset):
                 if chunk_index.chunk_start_offset < end or chunk_index.chunk_length < 9:
@@ -936,12 +940,12 @@ class BagReader:
                 end = chunk_index.chunk_start_offset + chunk_index.chunk_length
             if end > footer.summary_start:
                 raise ValueError(f"a chunk index points past the data section (to byte {end})")
-        except (McapError, struct.error, ValueError) as exc:
-            scan.schemas.clear()  # nothing of a damaged summary is used
-            scan.channels.clear()
+        except (McapError, struct.error, ValueError) as exc:  # nothing of a damaged summary is used
             self._problem(scan, f"{scan.path}: corrupt summary section at byte {footer.summary_start}: "
                                 f"{exc or type(exc).__name__}", "reading the data section instead")
             return None
+        scan.schemas.update(schemas)
+        scan.channels.update(channels)
         return chunk_indexes
 
     def _scan_file(self, scan: _FileScan) -> Iterator[tuple[int, int, Channel, bytes]]:
@@ -955,21 +959,10 @@ class BagReader:
 
         Each message is held only until no record after it can hold an earlier one, so that a file is not held in
         memory whole (a killed recorder's can be larger than memory): that takes each record's earliest log time, from
-        the summary's chunk indexes (under its CRC) or, without a summary, from the messages themselves in a first
-        pass, one record at a time. A chunk's header says it too, but no CRC covers it: a damaged one released messages
-        out of order."""
-        if chunk_indexes is None:
-            starts = {}
-            for pos, header, messages in self._scan_records(scan, data, None):
-                if messages:
-                    logged = (min(m.log_time for m, _ in messages), max(m.log_time for m, _ in messages))
-                    starts[pos] = logged[0]
-                    if header is not None and (logged[0] < header[0] or logged[1] > header[1]):
-                        self._warn(f"{scan.path}: damaged chunk header at byte {pos}: it gives log times {header[0]} "
-                                   f"to {header[1]} ns, its messages were logged from {logged[0]} to {logged[1]} ns; "
-                                   "read in log-time order by their own times")
-        else:
-            starts = {c.chunk_start_offset: c.message_start_time for c in chunk_indexes}
+        the summary's chunk indexes (under its CRC) or, without a summary, from the messages themselves
+        (_record_starts)."""
+        starts = (self._record_starts(scan, data) if chunk_indexes is None
+                  else {c.chunk_start_offset: c.message_start_time for c in chunk_indexes})
         offsets = sorted(starts)
         # earliest log time in the record at offsets[i] and every later one: once past offsets[i - 1], messages up to
         # it are released in order.
@@ -996,6 +989,24 @@ class BagReader:
                 yield heapq.heappop(pending)
         while pending:
             yield heapq.heappop(pending)
+
+    def _record_starts(self, scan: _FileScan, data) -> dict[int, int]:
+        """A file without a summary: the earliest log time of each data-section record holding messages, by offset,
+        from the messages themselves in a walk over its records, one record at a time. A chunk's header says it too,
+        but no CRC covers it: a damaged one released messages out of order. Kept in `scan`: topics() walks the file
+        as reading does first, and each walk decompresses all of it."""
+        if scan.starts is None:
+            starts = {}
+            for pos, header, messages in self._scan_records(scan, data, None):
+                if messages:
+                    logged = (min(m.log_time for m, _ in messages), max(m.log_time for m, _ in messages))
+                    starts[pos] = logged[0]
+                    if header is not None and (logged[0] < header[0] or logged[1] > header[1]):
+                        self._warn(f"{scan.path}: damaged chunk header at byte {pos}: it gives log times {header[0]} "
+                                   f"to {header[1]} ns, its messages were logged from {logged[0]} to {logged[1]} ns; "
+                                   "read in log-time order by their own times")
+            scan.starts = starts
+        return scan.starts
 
     def _scan_records(self, scan: _FileScan, data, chunk_indexes: list[ChunkIndex] | None
                       ) -> Iterator[tuple[int, tuple[int, int] | None, list[tuple[Message, Channel]]]]:
