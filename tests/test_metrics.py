@@ -606,3 +606,25 @@ def test_report_says_how_many_clips_each_row_and_plot_covers(tmp_path):
         < captions.index("![predicted vs true]") < captions.index("![RegL1 vs frames]")
     write_report({25: full, 15: full}, tmp_path / "same", "t")
     assert "Rows with another number of clips" not in (tmp_path / "same" / "report.md").read_text()
+
+
+def test_report_gives_the_frames_its_clips_observed_and_keeps_a_row_without_clips(tmp_path):
+    """It said "frames per clip: 25" whatever was scored: a model of 20 frames, or clips with frames missing
+    (ad_estimator.evaluate's records say how many frame slots each estimate had filled). A temporal-OOD row that every episode
+    was left out of stays in both tables, its cells "no clips", instead of vanishing."""
+    true = np.array([JELLY, PLASTICINE, SAND] * 2)
+    classes = np.array([0, 1, 2] * 2)
+    full = Predictions(classes, true, _onehot(classes), _fill(true), episode_ids=[f"e{i}" for i in range(6)])
+    records = [{**record, "frames_used": used} for record, used in zip(full.episodes(), [20, 20, 18, 20, 19, 20])]
+    by_frames = {20: Predictions.from_episodes(records), 18: full, 15: Predictions.from_episodes([])}
+    results = write_report(by_frames, tmp_path, "t")
+    report = (tmp_path / "report.md").read_text()
+    assert "Clips: 6; frames per clip: 20, but 2 clip(s) filled only 18 to 19 of the 20 frame slots (frames missing " \
+           "or rejected)." in report
+    assert "Rows with another number of clips than the 20-frame row's: 15 frames: no clips." in report
+    for table in (format_table(results), report):
+        rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| 15 ")]
+        assert rows and all(row[1:] == ["no clips"] * 9 + ["no clips |"] for row in rows), rows
+    assert json.loads((tmp_path / "metrics.json").read_text())["frames"]["15"]["n"] == 0
+    write_report({20: full}, tmp_path / "whole", "t")  # every clip whole (or not recorded): the row's K
+    assert "Clips: 6; frames per clip: 20." in (tmp_path / "whole" / "report.md").read_text()

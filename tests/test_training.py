@@ -283,6 +283,37 @@ def test_a_run_resumes_only_with_the_options_it_was_trained_with(bags, tmp_path,
         run_student(_args(bags, tmp_path / "s", cache, epochs=1, **student))
 
 
+def test_a_student_resumes_only_on_the_camera_views_it_trained_on(tmp_path, capsys):
+    """The same episodes recorded with one camera instead of two have the same instances (the --bags contents
+    digest), so a student run went on with half its videos, mixing data silently. The views are part of a
+    student's data now; a checkpoint from before they were recorded resumes, with a warning that says so.
+    The teacher trains on the particles alone: other cameras do not make it another run."""
+    two = write_synthetic_bag(tmp_path / "two" / "a", 6, views=2, seed=1)
+    one = write_synthetic_bag(tmp_path / "one" / "a", 6, views=1, seed=1)  # the same episodes, one camera
+    cache = tmp_path / "cache"
+    student = dict(kind="streaming", ablation="none", alpha=0.5, full_clips=False)
+    run_student(_args(two.parent, tmp_path / "s", cache, stop_after=1, **student))
+    with pytest.raises(ValueError, match=re.escape(f"{tmp_path / 's' / engine.LAST} was trained with --bags camera "
+                                                   "views 0,1 (12 videos); this run asks for --bags camera views 0 (6 "
+                                                   "videos). Resume it with the same options, or train into a new "
+                                                   "--out")):
+        run_student(_args(one.parent, tmp_path / "s", cache, **student))
+    run_teacher(_args(two.parent, tmp_path / "t", cache, stop_after=1))
+    run_teacher(_args(one.parent, tmp_path / "t", cache))
+    assert engine.load_checkpoint(tmp_path / "t" / engine.LAST)["epoch"] == 2
+    # A student checkpoint written before the views were recorded: resumed, saying what it cannot check.
+    last = tmp_path / "s" / engine.LAST
+    state = torch.load(last, weights_only=True)
+    del state["recipe"]["--bags camera views"]
+    torch.save(state, last)
+    capsys.readouterr()
+    run_student(_args(one.parent, tmp_path / "s", cache, **student))
+    assert (f"warning: {last} was written before its --bags camera views were recorded, so this resume cannot check "
+            f"them: make sure --bags {one.parent} holds the data it trained on (--bags camera views 0 (6 videos)), or "
+            "train into a new --out") in capsys.readouterr().err
+    assert torch.load(last, weights_only=True)["recipe"]["--bags camera views"] == "0 (6 videos)"
+
+
 def test_training_on_the_test_splits_is_warned_about(tmp_path, capsys):
     """A --bags above the splits trains on seen/unseen instances too: the run says so."""
     write_synthetic_bag(tmp_path / "bags" / "train", 6, views=1, seed=1)
@@ -759,6 +790,52 @@ def test_report_names_the_episode_of_an_unknown_material(tmp_path, capsys):
     assert err.startswith(f"python -m training report: {path}: \"frames\"[\"25\"]: episode 'e1' has the unknown "
                           "material 'honey' (expected one of jelly, plasticine, sand); pass a predictions.json"), err
     assert "\n" not in err and not (tmp_path / "out").exists()
+
+
+def test_report_keeps_a_temporal_ood_row_that_every_episode_was_left_out_of(tmp_path, capsys):
+    """ad_estimator.evaluate's predictions.json keeps an empty list for a K row every episode was left out of
+    (say, a camera at twice the model's rate: the first K frames span K/2 slots), and `report` dropped that row
+    from its tables. It stays, "no clips" in its cells; the frame slots each clip filled are its frames_used."""
+    from training.__main__ import main
+
+    record = {"episode_id": "e0", "true_material": "jelly", "true_parameters": {"youngs_modulus": 1e5,
+              "poissons_ratio": 0.3}, "probabilities": [0.8, 0.1, 0.1], "raw_parameters": [1e5, 0.3, 1e3, 0.5],
+              "frames_used": 24, "slots": 25}
+    path = tmp_path / "predictions.json"
+    left_out = {"bag": "b", "episode_id": "e0", "reason": "its window holds 9 of 18 frame slots"}
+    path.write_text(json.dumps({"model_id": "m", "frames": {"25": [record, {**record, "episode_id": "e1",
+                                                                            "frames_used": 25}], "18": []},
+                                "left_out": {"25": [], "18": [left_out, {**left_out, "episode_id": "e1"}]}}))
+    assert main(["report", "--predictions", str(path), "--out", str(tmp_path / "out")]) == 0
+    assert "| 18 | no clips | no clips |" in capsys.readouterr().out
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert report.count("| 18 | no clips | no clips |") == 2  # both conventions' tables
+    assert "Clips: 2; frames per clip: 25, but 1 clip(s) filled only 24 of the 25 frame slots" in report
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["frames"]["18"]["n"] == 0
+    # Prefixes alone, without the full clips: there is no full-clip row to report.
+    path.write_text(json.dumps({"frames": {"25": [], "18": [record]}}))
+    assert main(["report", "--predictions", str(path), "--out", str(tmp_path / "short")]) == 1
+    assert f'{path}: "frames"["25"], the full clips, holds no episode records' in capsys.readouterr().err
+
+
+def test_evaluate_scores_a_model_of_fewer_frames_on_its_first_frames_and_says_so(tmp_path, capsys):
+    """A model whose ad.frame_count is 20 was given all 25 cached frames: the evaluation failed ("features (20,
+    16) / valid (25,) do not fit the model"), and its report would have said 25 frames per clip."""
+    from estimator_models import build_streaming_model
+
+    from training.evaluate import evaluate_model
+
+    model = build_streaming_model(tmp_path, name="m20", frame_count=20)
+    write_synthetic_bag(tmp_path / "bags" / "unseen", 3, views=1, seed=2, split="unseen")
+    results = evaluate_model(model, tmp_path / "bags", tmp_path / "cache", tmp_path / "out", progress=False,
+                             record=False)
+    assert sorted(map(int, results), reverse=True) == [20, 18, 16, 15, 14, 12, 10]
+    assert "Clips: 3; frames per clip: 20." in (tmp_path / "out" / "report.md").read_text()
+    printed = [line.split("|")[1].strip() for line in capsys.readouterr().out.splitlines() if line.startswith("| ")]
+    assert printed[1:] == ["20", "18", "15"]  # the paper table: the full clip and the temporal-OOD rows it has
+    with pytest.raises(ValueError, match=re.escape(f"--frames [24]: {model} observes 20 frames (ad.frame_count), "
+                                                   "so each K must be in 1..20")):
+        evaluate_model(model, tmp_path / "bags", tmp_path / "cache", tmp_path / "out2", frames=(24, 15), record=False)
 
 
 def test_the_pipeline_trains_on_recorded_bags_and_generates_nothing_beside_them(tmp_path, monkeypatch, capsys):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import io
 import logging
+import re
 import shutil
 import sys
 
@@ -465,3 +466,18 @@ def test_progress_bars_are_drawn_on_a_terminal_and_not_into_a_redirected_log(bag
         monkeypatch.setattr(sys, "stderr", stderr)
         data.load_dataset(bags, tmp_path / f"cache_{drawn}", progress=True)
         assert ("cache bags" in stderr.getvalue()) == drawn, stderr.getvalue()
+
+
+def test_camera_views_tell_apart_datasets_of_the_same_instances(tmp_path):
+    """A student's resume check (train_teacher.load_run_data) reads the views beside the instances' fingerprint:
+    the same two episodes with their two cameras split the other way over them are other videos."""
+    for root, (first, second) in {"x": (2, 1), "y": (1, 2)}.items():
+        write_synthetic_bag(tmp_path / root / "a", 1, views=first, seed=3)
+        write_synthetic_bag(tmp_path / root / "b", 1, views=second, seed=3, first=1)
+    x, y = (data.load_dataset(tmp_path / root, tmp_path / "cache", progress=False) for root in "xy")
+    assert x.fingerprint() == y.fingerprint()
+    for ds in (x, y):
+        assert re.fullmatch(r"0,1 \(3 videos\), per instance [0-9a-f]{12}", ds.camera_views()), ds.camera_views()
+    assert x.camera_views() != y.camera_views()
+    write_synthetic_bag(tmp_path / "z" / "a", 2, views=2, seed=3)  # every instance with both: no digest needed
+    assert data.load_dataset(tmp_path / "z", tmp_path / "cache", progress=False).camera_views() == "0,1 (4 videos)"

@@ -291,3 +291,33 @@ def test_bags_generated_with_another_seed_are_refused_not_used(tmp_path, monkeyp
     # An empty --data is generated with the seed asked for, as before.
     assert main([*args, "--data", str(tmp_path / "empty"), "--seed", "1"]) == 130
     assert [argv[argv.index("--seed") + 1] for argv in generated] == ["1", "1", "1"]
+
+
+def test_a_data_seed_that_recorded_bags_cannot_confirm_is_said_naming_them(tmp_path, monkeypatch, capsys):
+    """Bags recorded through topics (`ad_sim record`: BagWriter without generate's settings in metadata.yaml) carry
+    no benchmark seed. `--data-seed 3` on them passed without a word, as if they were the seed-3 benchmark; it is
+    said now, naming them, and they are still used as they are (no seed is assumed for them). Without
+    --data-seed nothing was asked to be checked: no warning."""
+    import ad_sim.generate
+
+    from training import pipeline, train_teacher
+
+    data = tmp_path / "bags"
+    recorded = [write_synthetic_bag(data / "tiny" / split / "recorded", 2, views=1, split=split)
+                for split in ("train", "seen", "unseen")]
+    monkeypatch.setattr(ad_sim.generate, "main", lambda argv: pytest.fail(f"generated beside recorded bags: {argv}"))
+
+    def training_starts(args):
+        raise KeyboardInterrupt  # (exit 130): stands for the training the bags were used for
+
+    monkeypatch.setattr(train_teacher, "run", training_starts)
+    args = ["pipeline", "--size", "tiny", "--data", str(data), "--out", str(tmp_path / "run"), "--device", "cpu",
+            "--no-progress"]
+    assert main([*args, "--data-seed", "3"]) == 130
+    err = capsys.readouterr().err
+    assert (f"warning: --data-seed 3 cannot be checked for 3 bag(s) under {data}: they record no benchmark seed "
+            "(recorded through topics, or generated from an instance file), so they are used as they are, whatever "
+            f"seed they came from: {', '.join(map(str, recorded))}") in err, err
+    assert main(args) == 130
+    assert "--data-seed" not in capsys.readouterr().err
+    assert pipeline.check_data_seed(data / "tiny" / "train", 3) == [recorded[0]]

@@ -356,6 +356,19 @@ class Dataset:
             h.update(f"{episode_id}:{seed}\n".encode())
         return h.hexdigest()[:12]
 
+    def camera_views(self) -> str:
+        """Which camera views the instances have, as a resume check shows it: the views and the number
+        of videos ("0,1 (18 videos)"), and where instances differ in their views, a digest of each one's
+        (with `fingerprint` equal, that pins down every video a student trains on)."""
+        views: dict[int, list[int]] = {}
+        for i, v in zip(self.video_instance.tolist(), self.video_view.tolist()):
+            views.setdefault(i, []).append(v)
+        per_instance = [",".join(map(str, sorted(views[i]))) for i in range(len(self))]
+        text = f"{','.join(map(str, sorted(set(self.video_view.tolist()))))} ({self.num_videos} videos)"
+        if len(set(per_instance)) > 1:
+            text += f", per instance {hashlib.sha256(' '.join(per_instance).encode()).hexdigest()[:12]}"
+        return text
+
     def episode_keys(self) -> list[tuple[str, int]]:
         """Per instance, which simulated episode it is (its id and seed, as `fingerprint` names it): the
         same for an episode found in two bags (say, regenerated with another shard count, or repaired

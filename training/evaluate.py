@@ -28,13 +28,14 @@ FRAMES_SCORED = tuple(sorted({FRAME_COUNT, *TEMPORAL_OOD_FRAMES, *range(10, FRAM
 
 def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORED,
                     progress: bool = True) -> dict[int, Predictions]:
-    """Predictions for every observed-prefix length in `frames`, one clip per instance."""
+    """Predictions for every observed-prefix length in `frames`, one clip per instance: its first
+    max(frames) frames (the model's frame count where it takes fewer than the clips hold)."""
     videos = ds.first_view_videos()
     probs = {k: [] for k in frames}
     params = {k: [] for k in frames}
     sigmas = {k: [] for k in frames}
     for j in tqdm(videos, desc="evaluate", unit="clip", disable=None if progress else True):
-        video = list(ds.video(int(j)))  # frames on the model's interval, in order
+        video = list(ds.video(int(j))[:max(frames)])  # frames on the model's interval, in order
         features = clip_output([0] * len(video), video, model.encode, model.info.frame_interval,
                                model.info.frame_count, history=model.info.previous_frames).features
         for k in frames:
@@ -63,15 +64,24 @@ def write_evaluation(by_frames: dict[int, Predictions], out: str | Path, title: 
 
 def print_results(results: dict, title: str, out: str | Path, predictions: bool = True) -> None:
     """The paper table (the full clip and the temporal-OOD rows) and where the report went."""
-    print(format_table({k: v for k, v in results.items() if int(k) in (FRAME_COUNT, *TEMPORAL_OOD_FRAMES)}, title))
+    full = max(map(int, results))
+    print(format_table({k: v for k, v in results.items() if int(k) in (full, *TEMPORAL_OOD_FRAMES)}, title))
     where = f"report: {Path(out) / 'report.md'}"
     print(where + (f"  predictions: {Path(out) / 'predictions.json'}" if predictions else ""))
 
 
 def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, out: str | Path | None,
                    title: str | None = None, progress: bool = True, threads: int = 1,
-                   frames: tuple[int, ...] = FRAMES_SCORED, record: bool = True) -> dict:
+                   frames: tuple[int, ...] | None = None, record: bool = True) -> dict:
+    """Scores the model on one clip per instance at the full clip and each prefix length of `frames`
+    (default FRAMES_SCORED). The full clip is the cached clips' FRAME_COUNT frames, or the model's
+    ad.frame_count where it takes fewer (its first frames, as the estimator's window would hold)."""
     model = EstimatorModel.load(model_path, threads=threads)
+    full = min(model.info.frame_count, FRAME_COUNT)
+    if bad := [k for k in frames or () if k > full]:
+        raise ValueError(f"--frames {bad}: {model_path} observes {model.info.frame_count} frames (ad.frame_count), "
+                         f"so each K must be in 1..{full}")
+    frames = tuple(sorted({full, *(frames or (k for k in FRAMES_SCORED if k <= full))}, reverse=True))
     if record:
         read_model_metrics(model_path)  # a corrupt file fails now, not after the evaluation
     ds = data.load_dataset(bags, cache, progress=progress, coverage=model.info.mask_levels == "coverage")
@@ -109,7 +119,8 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
                    help="onnxruntime threads (clip models re-read every frame per estimate: give them cores)")
     p.add_argument("--frames", action=FrameCounts, nargs="*", metavar="K",
                    help=f"prefix lengths to score, e.g. --frames 20 15 or --frames 20,15 (default, also with no "
-                        f"value: {' '.join(map(str, FRAMES_SCORED))}; {FRAME_COUNT} is always scored)")
+                        f"value: {' '.join(map(str, FRAMES_SCORED))}; the full clip, {FRAME_COUNT} or the model's "
+                        "frame count where fewer, is always scored)")
     p.add_argument("--no-record", action="store_true",
                    help="leave <model>.metrics.json alone (e.g. for the bundled model, whose file ships)")
     p.add_argument("--no-progress", action="store_true")
@@ -117,15 +128,14 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 
 
 def run(args) -> dict:
-    frames = tuple(sorted({FRAME_COUNT, *args.frames}, reverse=True)) if args.frames else FRAMES_SCORED
     return evaluate_model(args.model, args.bags, args.cache, args.out, args.title, not args.no_progress,
-                          args.threads, frames, record=not args.no_record)
+                          args.threads, tuple(args.frames or ()), record=not args.no_record)
 
 
 def read_predictions(path: str | Path) -> tuple[dict[int, Predictions], dict]:
     """A saved predictions.json (of `evaluate`, `evaluate-teacher` or ad_estimator.evaluate, e.g. an
-    estimator_runtime_predictions.json) -> Predictions per number of frames with records, and the
-    whole file (for its header)."""
+    estimator_runtime_predictions.json) -> Predictions per number of frames (empty for a row every
+    episode was left out of), and the whole file (for its header)."""
     path = Path(path)
     what = ("pass a predictions.json written by `python -m training evaluate` or `evaluate-teacher`, or "
             "`ros2 run ad_estimator evaluate`")
@@ -135,18 +145,23 @@ def read_predictions(path: str | Path) -> tuple[dict[int, Predictions], dict]:
     names = saved.get("parameter_names") or PARAMETER_NAMES
     by_frames = {}
     for k, records in saved["frames"].items():
+        if not isinstance(records, list):
+            raise ValueError(f'{path}: "frames"["{k}"] is not a list of episode records; {what}')
         # An unknown material is named with its episode (from_episodes' own text was "tuple.index(x): x not in tuple").
-        for r in records if isinstance(records, list) else []:
+        for r in records:
             if isinstance(r, dict) and "true_material" in r and r["true_material"] not in FAMILIES:
                 raise ValueError(f'{path}: "frames"["{k}"]: episode {r.get("episode_id")!r} has the unknown material '
                                  f'{r["true_material"]!r} (expected one of {", ".join(FAMILIES)}); {what}')
-        try:
-            if records:
-                by_frames[int(k)] = Predictions.from_episodes(records, names)
+        try:  # an empty list (every episode left out of that row) is kept: the report shows the row without clips
+            by_frames[int(k)] = Predictions.from_episodes(records, names)
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f'{path}: "frames"["{k}"] is not a list of episode records ({exc!r}); {what}') from None
-    if not by_frames:
+    if not any(by_frames.values()):
         raise ValueError(f'{path}: "frames" holds no episode records, so there is nothing to report; {what}')
+    full = max(by_frames)
+    if not by_frames[full]:
+        raise ValueError(f'{path}: "frames"["{full}"], the full clips, holds no episode records (only shorter '
+                         f'prefixes do), so there is no full-clip row to report; {what}')
     return by_frames, saved
 
 
@@ -213,5 +228,5 @@ def update_model_metrics(model_path: str | Path, update: dict) -> Path:
 
 def summary(results: dict) -> dict:
     """Headline numbers of a results dict: the full clip's metrics and the temporal-OOD RegL1."""
-    return {"full": results[str(FRAME_COUNT)],
+    return {"full": results[str(max(map(int, results)))],
             "temporal_ood_regl1": {str(k): results[str(k)]["regl1"] for k in TEMPORAL_OOD_FRAMES if str(k) in results}}

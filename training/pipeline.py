@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import sys
 import time
 from argparse import Namespace
 from pathlib import Path
@@ -45,19 +46,23 @@ def generate_settings(folder: Path) -> dict[Path, dict | None]:
     return settings
 
 
-def generated_seeds(folder: Path) -> set[str]:
-    """The benchmark seeds (`ad_sim.generate --seed`) of the bags under `folder` that generate wrote from a
-    benchmark split; bags from elsewhere (recorded, an instance file, unreadable metadata) record none and are
-    left to the later stages."""
-    return {str(custom["seed"]) for custom in generate_settings(folder).values() if custom and "seed" in custom}
+def benchmark_seeds(folder: Path) -> dict[Path, str | None]:
+    """Each bag folder under `folder` -> the benchmark seed (`ad_sim.generate --seed`) it was generated with, or
+    None where it records none: bags recorded through topics, generated from an instance file, or with an
+    unreadable metadata.yaml."""
+    return {bag: str(custom["seed"]) if custom and "seed" in custom else None
+            for bag, custom in generate_settings(folder).items()}
 
 
-def check_data_seed(folder: Path, seed: int) -> None:
-    """ValueError if bags under `folder` were generated with another benchmark seed than `seed`."""
-    if other := sorted(generated_seeds(folder) - {str(seed)}):
+def check_data_seed(folder: Path, seed: int) -> list[Path]:
+    """ValueError if bags under `folder` were generated with another benchmark seed than `seed`. Returns the bags
+    there that record no seed and so cannot be checked (they are used as they are; no seed is assumed for them)."""
+    seeds = benchmark_seeds(folder)
+    if other := sorted({s for s in seeds.values() if s is not None} - {str(seed)}):
         raise ValueError(f"{folder} holds bags generated with --seed {', '.join(other)}, not the benchmark seed "
                          f"{seed} asked for (--data-seed, default --seed); pass --data-seed {other[0]} to train on "
                          f"them, or another --data to generate the seed-{seed} benchmark")
+    return sorted(bag for bag, s in seeds.items() if s is None)
 
 
 def ensure_bags(data_dir: Path, size: str, split: str, seed: int, device: str, progress: bool = True) -> Path:
@@ -133,8 +138,12 @@ def run(args) -> dict:
     data_seed = args.seed if args.data_seed is None else args.data_seed
     # Bags of another seed would be used as they are, so the same command would train on other data depending
     # on what an earlier run left in --data. All splits are checked before any is generated.
-    for split in SPLITS:
-        check_data_seed(Path(args.data) / args.size / split, data_seed)
+    unseeded = [bag for split in SPLITS for bag in check_data_seed(Path(args.data) / args.size / split, data_seed)]
+    if unseeded and args.data_seed is not None:  # asked for a check that these bags cannot give: said, not passed
+        named = ", ".join(map(str, unseeded[:5])) + (f" and {len(unseeded) - 5} more" if len(unseeded) > 5 else "")
+        print(f"warning: --data-seed {data_seed} cannot be checked for {len(unseeded)} bag(s) under {args.data}: they "
+              f"record no benchmark seed (recorded through topics, or generated from an instance file), so they are "
+              f"used as they are, whatever seed they came from: {named}", file=sys.stderr)
     bags = {s: ensure_bags(Path(args.data), args.size, s, data_seed, args.device, not args.no_progress)
             for s in SPLITS}
     timings = {"generate_s": time.time() - started}
@@ -144,7 +153,9 @@ def run(args) -> dict:
                                             epochs=teacher_epochs, batch_size=teacher_batch))
     timings["teacher_s"] = time.time() - t
 
-    summary = {"size": args.size, "seed": args.seed, "data_seed": data_seed, "teacher": str(teacher),
+    summary = {"size": args.size, "seed": args.seed, "data_seed": data_seed,
+               "bags_without_seed": [str(bag) for bag in unseeded],  # data_seed says nothing of these
+               "teacher": str(teacher),
                "teacher_metrics": {}, "students": {}}
     device = init_runtime(args.device).device
     model = train_teacher.load_teacher(teacher, device)

@@ -234,7 +234,7 @@ def run(args) -> Path:
     run_recipe = student_recipe(args, rt, teacher)
     resumed = check_resumable(Path(args.out), run_recipe, config.to_dict(), "student",
                               saved_config=lambda saved: StudentConfig.from_dict(saved).to_dict())
-    ds, bags = load_run_data(args, rt, resumed, coverage=config.mask_levels == "coverage")
+    ds, bags = load_run_data(args, rt, resumed, coverage=config.mask_levels == "coverage", videos=True)
     train_idx, val_idx = ds.split(args.val_fraction, args.seed)
     targets = teacher_targets(teacher, ds, rt.device) if teacher and args.ablation != "none" else None
     frames = main_first(rt, lambda: data.resized_videos(ds, tuple(config.input_size),

@@ -191,15 +191,25 @@ def recipe(args, rt, names: tuple[str, ...] = RECIPE_OPTIONS) -> dict:
     return {"--" + name.replace("_", "-"): getattr(args, name) for name in names} | {"torchrun processes": rt.world}
 
 
-def load_run_data(args, rt, resumed: dict | None, coverage: bool = False) -> tuple[data.Dataset, dict]:
-    """The instances under --bags and their recipe entry; a run being resumed (`resumed`: its
-    recorded recipe, from check_resumable) must have trained on the same ones. Warns when they
-    include the benchmark's test instances. `coverage`: grey mask videos (data.load_dataset)."""
+def load_run_data(args, rt, resumed: dict | None, coverage: bool = False,
+                  videos: bool = False) -> tuple[data.Dataset, dict]:
+    """The instances under --bags and their recipe entries; a run being resumed (`resumed`: its
+    recorded recipe, from check_resumable) must have trained on the same ones. `videos` (a student,
+    which trains on every camera view of an instance): the views count too, so that a resume on
+    bags with other cameras is refused rather than mixed in. Warns when they include the benchmark's
+    test instances, and when `resumed` predates an entry (it cannot be checked). `coverage`: grey
+    mask videos (data.load_dataset)."""
     ds = main_first(rt, lambda: data.load_dataset(args.bags, args.cache, progress=rt.main and not args.no_progress,
                                                   coverage=coverage))
-    bags = {"--bags contents": ds.fingerprint()}
+    bags = {"--bags contents": ds.fingerprint()} | ({"--bags camera views": ds.camera_views()} if videos else {})
     if resumed is not None:
-        check_recipe(Path(args.out) / LAST, resumed, bags)
+        last = Path(args.out) / LAST
+        check_recipe(last, resumed, bags)
+        if rt.main and (unchecked := [entry for entry in bags if entry not in resumed]):
+            tqdm.write(f"warning: {last} was written before its {' and '.join(unchecked)} were recorded, so this "
+                       f"resume cannot check them: make sure --bags {args.bags} holds the data it trained on "
+                       f"({', '.join(f'{entry} {bags[entry]}' for entry in unchecked)}), or train into a new --out",
+                       file=sys.stderr)
     if rt.main and (warning := ds.test_split_warning(args.bags)):
         tqdm.write(warning, file=sys.stderr)
     return ds, bags

@@ -381,7 +381,7 @@ def main(argv: list[str] | None = None) -> int:
               + (f"; {problems}" if problems else "") + hint, file=sys.stderr)
         return 1
     title = args.title or f"{model.model_id} on {', '.join(str(b) for b in args.bags)}"
-    by_frames = {k: to_metrics(v, model.info.parameter_names) for k, v in results.items() if v}
+    by_frames = {k: to_metrics(v, model.info.parameter_names) for k, v in results.items()}
     replaced = " (it replaced the report of an earlier run)" if (out / "report.md").exists() else ""
     try:
         with staged(out) as folder:  # an earlier report stays whole if this one cannot be written

@@ -3,8 +3,9 @@ and `ros2 run ad_estimator evaluate`.
 
 numpy, matplotlib and ad_sim.families only: this module must never import torch or Warp.
 
-Inputs are a `Predictions` per number of observed frames (25 = the full clip, plus the
-temporal-OOD prefixes 24, 22, 18, 15). Parameters are SI (friction angle in radians);
+Inputs are a `Predictions` per number of observed frames (the largest is the full clip: 25 for
+the simulator's clips, fewer for a model that takes fewer; plus the temporal-OOD prefixes 24, 22,
+18, 15). Parameters are SI (friction angle in radians);
 reports show the friction angle in degrees. Where the predictions carry the model's one-sigma
 uncertainties, the full-clip metrics also say how well those are calibrated (uncertainty_calibration).
 The full-clip report also says where the errors lie along each parameter's range (error_by_true_value).
@@ -71,6 +72,9 @@ class Predictions:
     # (N, 4) one sigma SI of pred_params (the model's, for every parameter, whatever the family);
     # NaN where none. None: the model gives no uncertainties (no calibration is reported).
     pred_sigma: np.ndarray | None = None
+    # (N,) frame slots each estimate had filled (fewer than the row's K where frames were missing or rejected
+    # and no other frame came near their slot). None: all K (an evaluator that does not record it).
+    frames_used: np.ndarray | None = None
 
     def __post_init__(self):
         self.true_class = np.asarray(self.true_class, dtype=np.int64)
@@ -83,6 +87,9 @@ class Predictions:
         if self.pred_sigma is not None:
             self.pred_sigma = np.asarray(self.pred_sigma, dtype=np.float64)  # None (JSON null) -> NaN
             expected["pred_sigma"] = (n, len(PARAMETER_NAMES))
+        if self.frames_used is not None:
+            self.frames_used = np.asarray(self.frames_used, dtype=np.int64)
+            expected["frames_used"] = (n,)
         for name, shape in expected.items():
             if getattr(self, name).shape != shape:
                 raise ValueError(f"Predictions.{name} has shape {getattr(self, name).shape}, expected {shape}")
@@ -110,6 +117,9 @@ class Predictions:
         if self.pred_sigma is not None:
             for record, sigma in zip(records, self.pred_sigma):
                 record["raw_uncertainties"] = sigma.tolist()
+        if self.frames_used is not None:
+            for record, used in zip(records, self.frames_used):
+                record["frames_used"] = int(used)
         return records
 
     @classmethod
@@ -118,9 +128,11 @@ class Predictions:
         that saved predictions can be scored again without the model or the bags. `raw_*` lists
         are in `parameter_names` order (a predictions.json says which under "parameter_names").
         Sigmas come from `raw_uncertainties`, or else from `uncertainties` (the predicted family's
-        own: the same for every correctly classified clip, all that calibration reads)."""
+        own: the same for every correctly classified clip, all that calibration reads). `frames_used`
+        where every record has it (ad_estimator.evaluate's do)."""
         sigma_key = next((k for k in ("raw_uncertainties", "uncertainties")
                           if records and all(k in r for r in records)), None)
+        used = [r["frames_used"] for r in records] if records and all("frames_used" in r for r in records) else None
         return cls(
             true_class=[FAMILIES.index(r["true_material"]) for r in records],
             true_params=np.array([[r["true_parameters"].get(n, math.nan) for n in PARAMETER_NAMES] for r in records],
@@ -128,7 +140,8 @@ class Predictions:
             probabilities=np.array([r["probabilities"] for r in records], float).reshape(len(records), len(FAMILIES)),
             pred_params=in_metric_order([r["raw_parameters"] for r in records], parameter_names),
             episode_ids=[r["episode_id"] for r in records],
-            pred_sigma=None if sigma_key is None else in_metric_order([r[sigma_key] for r in records], parameter_names))
+            pred_sigma=None if sigma_key is None else in_metric_order([r[sigma_key] for r in records], parameter_names),
+            frames_used=used)
 
     def __len__(self) -> int:
         return len(self.true_class)
@@ -362,14 +375,16 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
 
 def format_table(results: dict, title: str = "", which: str = "correct") -> str:
     """The paper's table layout as Markdown: one row per number of observed frames (the
-    full clip first, then the temporal-OOD rows). `which` is "correct" (paper) or "all"."""
+    full clip first, then the temporal-OOD rows). `which` is "correct" (paper) or "all". A row
+    that scored no clip (every episode left out of it) stays, with "no clips" in its cells."""
     lines = []
     if title:
         lines.append(f"**{title}** (parameter errors over {'correctly classified' if which == 'correct' else 'all'} "
                      "clips of each family; E, yield: log-MAE; nu: MAE; phi: MAE in degrees; RegL1: over all clips)")
         lines.append("")
     lines += markdown_table(["frames", *table_labels()],
-                            [[str(k), *map(table_cell, table_values(m, which))]
+                            [[str(k), *(["no clips"] * len(table_labels()) if m["n"] == 0
+                                        else map(table_cell, table_values(m, which)))]
                              for k, m in sorted(results.items(), key=lambda kv: -int(kv[0]))])
     return "\n".join(lines)
 
@@ -493,9 +508,23 @@ def _plot_confusion(ax, confusion: np.ndarray) -> None:
                     color="white" if confusion[i, j] > confusion.max() / 2 else "black")
 
 
+def _frames_per_clip(full: Predictions, frames: int) -> str:
+    """The frames of the full-clip row's clips: `frames`, its K (the model's frame count, or the clips'
+    where shorter), and where the evaluator recorded frames_used, the clips that filled fewer slots."""
+    used = full.frames_used
+    if used is None or (used >= frames).all():
+        return f"frames per clip: {frames}"
+    short = used[used < frames]
+    filled = f"{short.min()}" if short.min() == short.max() else f"{short.min()} to {short.max()}"
+    return (f"frames per clip: {frames}, but {len(short)} clip(s) filled only {filled} of the {frames} frame slots "
+            "(frames missing or rejected)")
+
+
 def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: str = "evaluation") -> dict:
     """Writes metrics.json, report.md and the plots (confusion matrix, predicted vs true per
-    parameter, RegL1 against frames observed) into out_dir; returns the metrics."""
+    parameter, RegL1 against frames observed) into out_dir; returns the metrics. The largest K is
+    the full clip; a row without clips (a temporal-OOD row every episode was left out of) is kept,
+    said as such."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -558,8 +587,8 @@ def write_report(by_frames: dict[int, Predictions], out_dir: str | Path, title: 
     fig.savefig(out / "regl1_vs_frames.png", dpi=100)
     plt.close(fig)
 
-    clips = f"Clips: {len(full)}; frames per clip: {FRAME_COUNT}."
-    if fewer := [f"{k} frames: {len(by_frames[k])}" for k in sorted(by_frames, reverse=True)
+    clips = f"Clips: {len(full)}; {_frames_per_clip(full, full_k)}."
+    if fewer := [f"{k} frames: {len(by_frames[k]) or 'no clips'}" for k in sorted(by_frames, reverse=True)
                  if len(by_frames[k]) != len(full)]:  # e.g. episodes left out of a temporal-OOD row
         clips += f" Rows with another number of clips than the {full_k}-frame row's: {', '.join(fewer)}."
     md = [f"# {title}", "", format_table(results, "Paper convention"), "",
