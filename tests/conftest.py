@@ -13,6 +13,7 @@ from __future__ import annotations
 import importlib
 import itertools
 import os
+import signal
 from functools import lru_cache
 from pathlib import Path
 
@@ -25,6 +26,12 @@ BUILD_HINT = "run ./setup.sh and source env.sh first (scripts/test.sh does both)
 
 # DDS discovery stays on this machine; before any rclpy import initialises a context.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+# A shell without job control starts its background commands with SIGINT ignored (`./scripts/test.sh &`,
+# nohup in a script), and every process the tests start inherits that: the tests that send Ctrl-C to a tool
+# then saw it run on to the end. A handler of our own is not inherited across exec; the default one comes back.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # Tests take domains in turn from the run's ROS_DOMAIN_ID (scripts/test.sh picks a random one), so that a
 # node left over from one test cannot talk to the next, each holding its domain's lock (ros_procs.hold_domain).

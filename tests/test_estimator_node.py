@@ -1,4 +1,5 @@
 """The estimator node over real DDS (rclpy, in-process executor) with real onnxruntime models."""
+import contextlib
 import itertools
 import re
 import signal
@@ -656,6 +657,29 @@ def run_node(*ros_args, **kwargs):
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kwargs)
 
 
+@contextlib.contextmanager
+def killed_at_exit(proc: subprocess.Popen):
+    """The process, killed when the block ends with it still running (a failed assertion)."""
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def read_until(proc: subprocess.Popen, lines: list[str], text: str) -> None:
+    """Reads the process's output into `lines` until one holds `text`; AssertionError with it all if it ends first."""
+    while not any(text in line for line in lines):
+        lines.append(proc.stdout.readline())
+        if not lines[-1]:
+            raise AssertionError("".join(lines))
+
+
+def assert_exited_cleanly(proc: subprocess.Popen, out: str) -> None:
+    assert proc.returncode == 0 and "Traceback" not in out and "terminate called" not in out, out
+
+
 @pytest.mark.parametrize("content", [None, b"not an onnx file", b""])
 def test_missing_or_corrupt_model_fails_at_start_naming_the_file(tmp_path, content):
     path = tmp_path / "broken_model.onnx"
@@ -733,23 +757,16 @@ def test_signals_in_a_row_through_the_shutdown_exit_cleanly(model_paths, ros_dom
     launch escalating): the second cuts finishing the input short, the rest change nothing. Each later signal raised
     KeyboardInterrupt wherever the main thread was: a traceback out of rclpy destroying the node, an abort (C++
     terminate) from a thread left in rclpy, or, as the interpreter exited, death by the signal itself."""
-    proc = run_node("-p", f"model_path:={model_paths['streaming']}", "-r", "mask:=/estimator_test/signals")
-    try:
+    with killed_at_exit(run_node("-p", f"model_path:={model_paths['streaming']}", "-r",
+                                 "mask:=/estimator_test/signals")) as proc:
         lines = []
-        while not any("model test-streaming" in line for line in lines):
-            lines.append(proc.stdout.readline())
-            if not lines[-1]:
-                raise AssertionError("".join(lines))
+        read_until(proc, lines, "model test-streaming")
         signals = itertools.cycle([signal.SIGINT, signal.SIGTERM])
         while proc.poll() is None:
             proc.send_signal(next(signals))
             time.sleep(0.001)
         out = "".join(lines) + proc.communicate(timeout=20)[0]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 0 and "Traceback" not in out and "terminate called" not in out, out
+    assert_exited_cleanly(proc, out)
     assert out.count("shutting down") == 1, out
 
 
@@ -826,32 +843,21 @@ def test_a_second_sigint_while_a_clip_call_holds_up_the_shutdown_exits_cleanly(r
             "def slow_clip(self, frames):\n    print('clip call started', flush=True)\n    time.sleep(60)\n"
             "node.EstimatorNode.estimate_clip = slow_clip\n"
             f"sys.exit(node.main(['node', '--ros-args', '-p', 'model_path:={model_paths['streaming']}']))\n")
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
+    with killed_at_exit(subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                                         stderr=subprocess.STDOUT, text=True)) as proc:
         lines = []
-
-        def read_until(text):
-            while not any(text in line for line in lines):
-                lines.append(proc.stdout.readline())
-                if not lines[-1]:
-                    raise AssertionError("".join(lines))
-
-        read_until("model test-streaming")
+        read_until(proc, lines, "model test-streaming")
         context, _ = ros
         client_node = Node("clip_caller", context=context)
         ros[1].add_node(client_node)
         client = client_node.create_client(EstimateMaterial, "/ad_estimator/estimate")
         assert client.wait_for_service(timeout_sec=10)
         client.call_async(EstimateMaterial.Request(frames=[image_msg(m, 0) for m in falling_masks(seed=3)[:3]]))
-        read_until("clip call started")
+        read_until(proc, lines, "clip call started")
         proc.send_signal(signal.SIGINT)
         time.sleep(0.5)  # in the wait for the clip call
         stopped = time.monotonic()
         proc.send_signal(signal.SIGINT)
         out = "".join(lines) + proc.communicate(timeout=20)[0]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 0 and "Traceback" not in out and "terminate called" not in out, out
+    assert_exited_cleanly(proc, out)
     assert "shutting down" in out and time.monotonic() - stopped < 5, out
