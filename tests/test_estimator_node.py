@@ -26,10 +26,11 @@ from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
 from ad_estimator import estimate
+from ad_estimator.images import array_to_mask
 from ad_estimator.model import EstimatorModel
 from ad_estimator.node import EstimatorNode, make_executor
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS
-from ad_estimator.window import FrameWindow
+from ad_estimator.window import FrameWindow, clip_output
 from ad_sim.rosbag import BagReader
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
 from estimator_ros import image_msg, ros_context, spin_until_shutdown, tracked, wait_for
@@ -290,6 +291,56 @@ def test_estimate_service_answers_a_clip(ros, model_paths):
     future = client.call_async(EstimateMaterial.Request())
     assert wait_for(future.done)
     assert not future.result().success and "empty" in future.result().message
+
+
+def clip_of(case: str) -> tuple[list[int], np.ndarray]:
+    """(stamps ns, mono8 pixels) of an odd clip: what a planner may send ~/estimate, and a library user clip_output."""
+    clock = 1_700_000_000 * 10**9
+    if case == "long":  # 2 s; the object leaves the view after 1 s
+        masks = falling_masks(80, seed=31)
+        masks[40:] = 0
+        return [clock + k * DT for k in range(80)], masks
+    if case == "thirty_fps":  # 1 s of a jittery 30 fps camera
+        rng = np.random.default_rng(32)
+        stamps = [clock + int(k * 1e9 / 30) + int(rng.integers(-3, 4)) * 10**6 for k in range(30)]
+        return stamps, falling_masks(30, seed=32)
+    if case == "equal_stamps":  # all stamped alike: frames on the model's interval
+        return [clock] * 25, falling_masks(25, seed=33)
+    assert case == "first_unstamped"  # frame 0 stamped 0, the others with the clock
+    return [0] + [clock + k * DT for k in range(1, 25)], falling_masks(25, seed=34)
+
+
+@pytest.mark.parametrize("case", ["long", "thirty_fps", "equal_stamps", "first_unstamped"])
+def test_the_clip_service_and_the_library_give_the_same_estimate_for_a_clip(ros, model_paths, case):
+    """~/estimate and window.clip_output (docs/estimator.md, "In your own Python process, without ROS") prepare a
+    clip with the same code: for a long clip, one of equal stamps, and one whose first frame is stamped 0 and the
+    others with the clock, the same slots, estimate and stamps. The library gave the slot times for equal stamps,
+    refused a first frame stamped 0 ("gap_threshold must be a number of seconds up to 1e+06"), and could not take
+    frames past the last slot that have no object (array_to_mask refuses them)."""
+    stamps, pixels = clip_of(case)
+    model = EstimatorModel.load(model_paths["streaming"])
+    info, threshold = model.info, model.info.input_threshold()
+    if case == "long":  # frames 40 on have no object: converted only if used (they are not)
+        out = clip_output(stamps, list(pixels), model.encode, info.frame_interval, info.frame_count,
+                          history=info.previous_frames, convert=lambda p: array_to_mask(p, threshold=threshold))
+    else:
+        out = clip_output(stamps, [array_to_mask(p, threshold=threshold) for p in pixels], model.encode,
+                          info.frame_interval, info.frame_count, history=info.previous_frames)
+    expected = model.predict(out.features, out.valid)
+
+    t = start(ros, model_paths["streaming"])
+    client = t.client.create_client(EstimateMaterial, "/ad_estimator/estimate")
+    assert client.wait_for_service(timeout_sec=5)
+    future = client.call_async(EstimateMaterial.Request(frames=[image_msg(p, s) for s, p in zip(stamps, pixels)]))
+    assert wait_for(future.done) and future.result().success, future.result().message
+    answer = future.result().estimate
+    assert (stamp_ns(answer.oldest_stamp), stamp_ns(answer.header.stamp), answer.frames_used, answer.complete) == (
+        out.oldest_stamp_ns, out.newest_stamp_ns, out.frames_used, out.complete)
+    assert answer.material == expected.material
+    np.testing.assert_array_equal(np.array(answer.class_probabilities, np.float32),
+                                  expected.probabilities.astype(np.float32))
+    np.testing.assert_array_equal(answer.parameters, expected.parameters)  # NaN where unused, in both
+    np.testing.assert_array_equal(answer.parameter_uncertainties, expected.uncertainties)
 
 
 def test_streams_and_clips_reach_the_frame_encoder_with_their_earlier_frames(ros, tmp_path):

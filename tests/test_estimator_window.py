@@ -370,6 +370,111 @@ def test_clip_stamps():
         clip_stamps([5, 4, 90], 0.025)
 
 
+CLOCK = 1_700_000_000 * 10**9  # a camera's clock stamp
+
+
+def marked(k: int, size=SIZE) -> np.ndarray:
+    """Frame k's mask, which by_mark encodes as k."""
+    return np.full(size, k, np.uint8)
+
+
+def by_mark(mask, _earlier):
+    return np.array([float(mask[0, 0])])
+
+
+def test_clip_output_of_a_long_clip_converts_and_uses_its_first_slots_frames_only():
+    """A 2 s clip whose object leaves the view after 1 s: frames past the last slot (0.6 s and its tolerance after
+    the first) are neither converted nor encoded, and the output is that of the clip's first 0.6 s, complete, as the
+    ~/estimate service gives. The library took masks only, which array_to_mask refused for the frames without an
+    object, so a library user had to cut the clip to its first 0.6 s."""
+    converted = []
+
+    def convert(k):
+        converted.append(k)
+        if k >= 40:
+            raise ValueError("no object pixel")
+        return marked(k)
+
+    stamps = [CLOCK + k * DT for k in range(80)]
+    out = clip_output(stamps, list(range(80)), by_mark, 0.025, 25, history=1, convert=convert)
+    assert converted == list(range(26))  # frame 25 (0.625 s) still lies within the last slot's reach
+    assert out.complete and chosen(out) == list(range(25))
+    assert (out.oldest_stamp_ns, out.newest_stamp_ns, out.oldest_frame, out.newest_frame) == (
+        CLOCK, CLOCK + 24 * DT, 0, 24)
+    first = clip_output(stamps[:25], [marked(k) for k in range(25)], by_mark, 0.025, 25, history=1)
+    np.testing.assert_array_equal(out.features, first.features)
+    assert (first.complete, first.newest_stamp_ns) == (True, out.newest_stamp_ns)
+    unread = clip_output(stamps, [marked(k) if k < 40 else None for k in range(80)], by_mark, 0.025, 25, history=1)
+    np.testing.assert_array_equal(unread.features, out.features)  # masks past the last slot are not read either
+
+
+def test_clip_output_of_a_first_frame_stamped_0_and_the_others_with_the_clock():
+    """The service's partial estimate from frame 0 (the others are days later: past the last slot). The library
+    refused the clip with "gap_threshold must be a number of seconds up to 1e+06", a parameter never given."""
+    stamps = [0] + [CLOCK + k * DT for k in range(1, 25)]
+    out = clip_output(stamps, [marked(k) for k in range(25)], by_mark, 0.025, 25, history=1)
+    assert out.complete and chosen(out) == [0, 0] + [None] * 23  # frame 0 also fills slot 1, within the tolerance
+    assert (out.oldest_stamp_ns, out.newest_stamp_ns, out.episode_start_ns, out.newest_frame) == (0, 0, 0, 0)
+
+
+@pytest.mark.parametrize("stamp", [0, CLOCK])
+def test_clip_output_of_equal_stamps_gives_the_frames_own_stamp(stamp):
+    """Frames all stamped alike lie on the model's interval for the slots only: the output's stamps are the frames'
+    own, as the service's estimate carries them (the library gave the slot times, up to 0.6 s after every frame)."""
+    for stamps in ([stamp] * 30, np.full(30, stamp, np.uint64)):
+        out = clip_output(stamps, [marked(k) for k in range(30)], by_mark, 0.025, 25, history=1)
+        assert out.complete and chosen(out) == list(range(25))
+        assert (out.oldest_stamp_ns, out.newest_stamp_ns, out.episode_start_ns) == (stamp, stamp, stamp)
+        assert (out.oldest_frame, out.newest_frame) == (0, 24)
+
+
+@pytest.mark.parametrize("stamps, masks, error, message", [
+    ([], [], ValueError, r"^empty clip: send at least one frame$"),
+    ([0, DT], [frame()], ValueError, r"^2 stamps for 1 frames: give one stamp per frame$"),
+    ([0, 25e6], [frame(), frame()], TypeError, r"^frame 1: a stamp is a whole number of nanoseconds, got float "
+                                               r"25000000.0; from seconds: round\(t \* 1e9\)$"),
+    ([0, DT, DT], [frame()] * 3, ValueError, r"^frame 2: stamp 0.025000000 s is not after frame 1's \(0.025000000 "
+                                             r"s\); clip stamps must be strictly increasing"),
+])
+def test_clip_output_refuses_a_clip_it_cannot_use_saying_why(stamps, masks, error, message):
+    """An empty clip failed with an IndexError, as many stamps as masks went unnoticed (the extra ones were
+    dropped), and a float stamp's error did not name the frame."""
+    with pytest.raises(error, match=message):
+        clip_output(stamps, masks, by_mark, 0.025, 25, history=1)
+
+
+def test_clip_output_restarts_on_a_size_change_among_the_frames_it_uses_only():
+    """A size change within the slots' reach restarts the window, whose slots then reach 0.6 s past that frame; one
+    past the last slot is not used (nor converted), as no frame there is: the output is the first episode's."""
+    stamps = [CLOCK + k * DT for k in range(60)]
+    for change, (start, episode) in ((20, (20, 2)), (30, (0, 1))):
+        converted = []
+
+        def convert(k, change=change):
+            converted.append(k)
+            return marked(k, (64, 64) if k >= change else SIZE)
+
+        out = clip_output(stamps, list(range(60)), by_mark, 0.025, 25, history=1, convert=convert)
+        assert out.complete and chosen(out) == list(range(start, start + 25)), change
+        assert (out.episode, out.episode_start_ns, out.oldest_frame, out.newest_frame) == (
+            episode, stamps[start], start, start + 24)
+        assert converted == list(range(start + 26))
+
+
+def test_clip_output_converts_every_used_frame_before_encoding_and_names_the_one_refused():
+    encoded = []
+
+    def convert(k):
+        if k == 10:
+            raise ValueError("no object pixel in this mono8 mask")
+        return marked(k)
+
+    with pytest.raises(ValueError, match=r"^frame 10: no object pixel in this mono8 mask$"):
+        clip_output([k * DT for k in range(25)], list(range(25)), lambda *args: encoded.append(1) or by_mark(*args),
+                    0.025, 25, history=1, convert=convert)
+    assert encoded == []
+
+
 def test_min_frames_matters_to_the_anytime_policy_only():
     # A model with fewer frame slots than the anytime default still gets an episode window.
     assert FrameWindow(0.025, 12, history=0).min_frames == 12

@@ -14,13 +14,13 @@ Services: ~/reset (std_srvs/Trigger), ~/estimate (ad_msgs/srv/EstimateMaterial).
 """
 from __future__ import annotations
 
+import atexit
 import queue
 import signal
 import sys
 import threading
 import time
 from collections import deque
-from dataclasses import replace
 
 import numpy as np
 import rclpy
@@ -42,7 +42,7 @@ from std_srvs.srv import Trigger
 from ad_estimator.images import ImageRejected, check_header, image_to_mask
 from ad_estimator.model import BUNDLED_MODEL, TRAINED_EXTENT, Estimate, EstimatorModel, ModelError, object_extent
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, RANGES, check_parameters, model_window
-from ad_estimator.window import WindowOutput, clip_output, clip_stamps, ns_to_stamp, stamp_to_ns
+from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
 from ad_sim.dds import declare_parameters, node_cli, number
 
 LOG_THROTTLE_S = 5.0
@@ -392,9 +392,9 @@ class EstimatorNode(Node):
 
     def estimate_clip(self, frames: list[Image]) -> tuple[MaterialEstimate, str | None]:
         """One estimate for a clip (oldest first), through the same slots as the stream, and the
-        framing warning if its object is framed unlike training."""
-        if not frames:
-            raise ValueError("empty clip: send at least one frame")
+        framing warning if its object is framed unlike training. The clip's use (its stamps, the frames
+        past the last slot) is window.clip_output's, as for a library user; this checks what only a
+        request has (its headers) and converts the frames clip_output uses."""
         if len(frames) > MAX_CLIP_FRAMES:
             raise ValueError(f"clip of {len(frames)} frames exceeds {MAX_CLIP_FRAMES}")
         stamps = []
@@ -408,26 +408,12 @@ class EstimatorNode(Node):
                 # a stream would restart its window here; a clip is one episode of one camera
                 raise ValueError(f"frame {i}: {frame.width}x{frame.height}, frame 0: {frames[0].width}x"
                                  f"{frames[0].height}; clip frames must all have the same size")
-        slot_stamps = clip_stamps(stamps, self.info.frame_interval)  # ValueError naming the frame out of order
-        # Frames past the last slot's reach are used in no slot: the first of them only settles the slots (complete),
-        # the rest change nothing. So they are not converted (a long clip whose object leaves the view later still
-        # gets its estimate), and the first one is put just past the reach: a stamp days later (a first frame stamped
-        # 0, the others with the clock) would otherwise be out of the window's range.
-        interval_ns = int(round(self.info.frame_interval * 1e9))
-        reach_ns = (slot_stamps[0] + (self.info.frame_count - 1) * interval_ns
-                    + int(round(self.slot_tolerance * interval_ns)))
-        used = next((i for i, s in enumerate(slot_stamps) if s > reach_ns), len(frames))
-        masks = []
-        for i, frame in enumerate(frames[:used]):
-            try:
-                masks.append(image_to_mask(frame, self.max_pixels, self.threshold))
-            except ImageRejected as exc:
-                raise ValueError(f"frame {i}: {exc}") from exc
-        slot_stamps = slot_stamps[:used]
-        if used < len(frames):
-            masks.append(np.zeros_like(masks[-1]))  # encoded never: it lands in no slot
-            slot_stamps.append(reach_ns + 1)
-        framing = self._check_framing(masks[0])
+        masks = []  # those clip_output converts: the frames it uses
+
+        def convert(frame: Image) -> np.ndarray:
+            masks.append(image_to_mask(frame, self.max_pixels, self.threshold))
+            return masks[-1]
+
         model_time = [0.0]
 
         def timed(function, *args):
@@ -437,15 +423,12 @@ class EstimatorNode(Node):
             finally:
                 model_time[0] += time.perf_counter() - start
 
-        out = clip_output(slot_stamps, masks, lambda *args: timed(self.model.encode, *args), self.info.frame_interval,
-                          self.info.frame_count, slot_tolerance=self.slot_tolerance, history=self.info.previous_frames)
+        out = clip_output(stamps, frames, lambda *args: timed(self.model.encode, *args), self.info.frame_interval,
+                          self.info.frame_count, slot_tolerance=self.slot_tolerance, history=self.info.previous_frames,
+                          convert=convert)
+        framing = self._check_framing(masks[0])
         estimate = timed(self.model.predict, out.features, out.valid)
-        # header.stamp and oldest_stamp are the stamps the frames carry: those of a clip of equal stamps, spread on
-        # the model's interval for the slots only, are no capture time (they lay up to 0.6 s after all of them).
-        index = {stamp: i for i, stamp in enumerate(slot_stamps)}
-        oldest, newest = index[out.oldest_stamp_ns], index[out.newest_stamp_ns]
-        out = replace(out, oldest_stamp_ns=stamps[oldest], newest_stamp_ns=stamps[newest])
-        return estimate_message(estimate, out, frames[newest].header.frame_id, self.info.model_id,
+        return estimate_message(estimate, out, frames[out.newest_frame].header.frame_id, self.info.model_id,
                                 model_time[0]), framing
 
     # ------------------------------------------------------------------ diagnostics
@@ -666,7 +649,7 @@ def main(args=None) -> int:
             print(f"ad_estimator: shutting down: {node.statistics()}", file=sys.stderr, flush=True)
             node.destroy_node()
         rclpy.try_shutdown()
-        stop.ignore()
+        atexit.register(stop.ignore)  # at the interpreter's exit: an in-process caller of main keeps its signals
     return 0
 
 

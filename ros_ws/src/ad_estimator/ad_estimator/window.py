@@ -54,7 +54,7 @@ import math
 import operator
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -366,22 +366,96 @@ def stamp_text(ns: int) -> str:
     return f"{sec}.{nanosec:09d}"
 
 
-def clip_output(stamps_ns: list[int], masks: list[np.ndarray], encode: Encode,
+@dataclass
+class ClipOutput(WindowOutput):
+    """clip_output's answer: a WindowOutput whose stamps are the clip's own (those of a clip stamped all alike too),
+    and which of the clip's frames they are."""
+
+    oldest_frame: int = 0  # index in the clip of the frame in the first valid slot
+    newest_frame: int = 0  # ... in the last valid slot
+
+
+def clip_output(stamps_ns: Sequence[int], masks: Sequence, encode: Encode,
                 frame_interval: float, frame_count: int, *, history: int,
-                slot_tolerance: float = DEFAULT_SLOT_TOLERANCE) -> WindowOutput | None:
+                slot_tolerance: float = DEFAULT_SLOT_TOLERANCE,
+                convert: Callable[[object], np.ndarray] | None = None) -> ClipOutput:
     """The slots of a whole clip (oldest first), as one episode: what the stream would give at its
-    last frame, settled as at the end of a stream. Used by the EstimateMaterial service and evaluate.
+    last frame, settled as at the end of a stream. The one code path of the node's EstimateMaterial
+    service, evaluate and library users, so that all of them get the same slots for the same clip.
     ``history``: earlier frames an encoding reads (the model's ``info.previous_frames``), required
     because a wrong one gives a plausible but wrong estimate.
 
-    As in a stream, a change of image size restarts the window: the output is then that of the
-    frames from the last change on (its episode_start_ns says where)."""
-    stamps_ns = clip_stamps(list(stamps_ns), frame_interval)
-    span = (stamps_ns[-1] - stamps_ns[0]) / 1e9 + 1.0  # one clip is one episode: no gap restarts
-    window = FrameWindow(frame_interval, frame_count, gap_threshold=span, slot_tolerance=slot_tolerance,
+    Stamps (whole ns) must increase strictly, or be all equal: frames on the model's interval
+    (clip_stamps); the output's stamps are then the frames' own, not the slot times. Any clip
+    length: slots reach ``(frame_count - 1) * frame_interval`` plus the slot tolerance past the
+    first frame's stamp, and the frames after that are used in no slot: they are neither converted
+    nor encoded (the first of them only settles the slots, so the output is complete), so a long clip
+    whose object leaves the view later, or whose first frame is stamped 0 and the others with the
+    clock (then a partial output from frame 0), gets its output. ``masks`` are the frames' masks, or,
+    with ``convert``, anything ``convert(frame)`` makes a mask of (e.g. images.array_to_mask), called
+    for the used frames only, all of them before any encoding; its ValueError (ImageRejected) comes
+    out as a ValueError naming the frame ("frame 3: ...").
+
+    As in a stream, a change of image size among the frames used restarts the window: the output is
+    then that of the frames from the last change on (its episode_start_ns says where), whose slots
+    reach as far past that frame. A frame past the last slot is not used, whatever its size: the
+    output is then that of the episode before it (a stream would go on to another episode).
+
+    Errors (ValueError, TypeError for a stamp that is no whole number, each naming the frame at
+    fault): an empty clip, as many stamps as masks not given, stamps that repeat or go back, a
+    frame ``convert`` refuses.
+    """
+    stamps_ns, masks = list(stamps_ns), list(masks)
+    if len(stamps_ns) != len(masks):
+        raise ValueError(f"{len(stamps_ns)} stamps for {len(masks)} frames: give one stamp per frame")
+    if not len(masks):
+        raise ValueError("empty clip: send at least one frame")
+    stamps = []
+    for i, stamp in enumerate(stamps_ns):
+        try:
+            stamps.append(operator.index(stamp))
+        except TypeError:
+            raise TypeError(f"frame {i}: a stamp is a whole number of nanoseconds, got {type(stamp).__name__} "
+                            f"{stamp!r}; from seconds: round(t * 1e9)") from None
+    slot_stamps = clip_stamps(stamps, frame_interval)  # ValueError naming the frame out of order
+    # Never a gap restart: each frame placed lies within (frame_count + 1) intervals of the one before it.
+    gap_threshold = min(MAX_SECONDS, (frame_count + 2) * frame_interval)
+    window = FrameWindow(frame_interval, frame_count, gap_threshold=gap_threshold, slot_tolerance=slot_tolerance,
                          policy="anytime", every_n=frame_count, min_frames=1, history=history)
+    # Frames past the last slot's reach are used in no slot: the first of them only settles the slots (complete),
+    # the rest change nothing. So they are neither converted nor placed, and the first one is put just past the
+    # reach, with an empty mask of the last used frame's size: a stamp days later (a first frame stamped 0, the
+    # others with the clock) would otherwise be out of the window's range. The reach is the current episode's: a
+    # frame of another size than the one before it starts the episode again (the window restarts there).
+    span_ns = (frame_count - 1) * window.interval_ns + window.tolerance_ns
+    used_masks: list[np.ndarray] = []
+    reach_ns = slot_stamps[0] + span_ns
+    for i, (stamp, frame) in enumerate(zip(slot_stamps, masks)):
+        if stamp > reach_ns:
+            break
+        if convert is None:
+            mask = frame
+        else:
+            try:
+                mask = convert(frame)
+            except ValueError as exc:  # ImageRejected is one
+                raise ValueError(f"frame {i}: {exc}") from exc
+        if used_masks and np.shape(mask) != np.shape(used_masks[-1]):
+            reach_ns = stamp + span_ns
+        used_masks.append(mask)
+    used = len(used_masks)
+    placed = slot_stamps[:used]
+    if used < len(slot_stamps):
+        used_masks.append(np.zeros_like(used_masks[-1]))  # encoded never: it lands in no slot
+        placed.append(reach_ns + 1)
     outputs = []
-    for stamp, mask in zip(stamps_ns, masks):
+    for stamp, mask in zip(placed, used_masks):
         outputs += window.add(stamp, mask, encode)
     outputs += window.flush()
-    return outputs[-1] if outputs else None
+    out = outputs[-1]  # the episode's first frame fills slot 0: there is an output
+    index = {stamp: i for i, stamp in enumerate(slot_stamps[:used])}
+    oldest, newest = index[out.oldest_stamp_ns], index[out.newest_stamp_ns]
+    # The frames' own stamps: those of a clip of equal stamps, spread on the model's interval for the slots only,
+    # are no capture time (they lay up to 0.6 s after all of them).
+    return ClipOutput(out.features, out.valid, out.complete, stamps[oldest], stamps[newest],
+                      stamps[index[out.episode_start_ns]], out.episode, oldest_frame=oldest, newest_frame=newest)
