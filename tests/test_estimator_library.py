@@ -88,10 +88,11 @@ for stamp_ns, pixels in camera():
     for out in window.add(stamp_ns, array_to_mask(pixels, threshold=threshold), model.encode):
         estimates.append((out.frames_used, out.complete, model.predict(out.features, out.valid)))
 assert not window.flush()
-stamps, masks = zip(*((s, array_to_mask(p, threshold=threshold)) for s, p in camera(25)))
-out = clip_output(list(stamps), list(masks), model.encode, info.frame_interval, info.frame_count,
-                  history=info.previous_frames)
+stamps, frames = zip(*camera())  # 1 s: the clip's frames past the model's 0.6 s are not used
+out = clip_output(stamps, frames, model.encode, info.frame_interval, info.frame_count,
+                  history=info.previous_frames, convert=lambda pixels: array_to_mask(pixels, threshold=threshold))
 clip = model.predict(out.features, out.valid)
+assert (out.frames_used, out.complete, out.newest_stamp_ns, out.newest_frame) == (25, True, T0 + 24 * DT, 24)
 assert [(n, c) for n, c, _ in estimates] == [(15, False), (20, False), (25, True)], estimates
 assert np.array_equal(clip.probabilities, estimates[-1][2].probabilities)
 assert np.array_equal(clip.parameters, estimates[-1][2].parameters, equal_nan=True)
@@ -101,6 +102,26 @@ print(sorted({"rclpy", "torch", "warp", "scipy"} & set(sys.modules)))
     probe = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                            env={"PATH": "/usr/bin:/bin", "PYTHONPATH": ":".join(map(str, paths))})
     assert probe.returncode == 0 and probe.stdout.strip() == "[]", probe.stdout + probe.stderr
+
+
+def documented_example() -> str:
+    """The Python example of docs/estimator.md, "In your own Python process, without ROS", as it is written."""
+    section = (ROOT / "docs" / "estimator.md").read_text().split("## In your own Python process, without ROS\n")[1]
+    return section.split("```python\n", 1)[1].split("```", 1)[0]
+
+
+def test_the_documented_example_runs_as_written():
+    """The example's own text (the test above runs a copy with assertions), without rclpy and torch: it prints the
+    estimates at 15, 20 and 25 frames, then its whole 1 s clip's, which is the 25-frame one."""
+    paths = [ROOT / "ros_ws" / "src" / "ad_estimator", ROOT / "ros_ws" / "src" / "ad_sim"]
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": ":".join(map(str, paths))}
+    probe = subprocess.run([sys.executable, "-c", BLOCK_ROS_AND_TORCH + documented_example()], capture_output=True,
+                           text=True, timeout=120, env=env)
+    assert probe.returncode == 0, probe.stdout + probe.stderr
+    lines = probe.stdout.splitlines()
+    assert [line.split(":")[0] for line in lines[:3]] == [
+        "15 frames, complete False", "20 frames, complete False", "25 frames, complete True"], probe.stdout
+    assert len(lines) == 4 and lines[2].split(": ", 1)[1].startswith(lines[3].split()[0]), probe.stdout
 
 
 def test_the_library_gives_the_estimates_the_nodes_code_path_gives_for_a_bag(model):
@@ -168,9 +189,14 @@ def test_a_mask_that_is_not_a_0_255_uint8_one_is_read_alike_or_refused_at_every_
     (np.full((1, 64, 64), 255, np.uint8), r"a mask is one 2-D \(height, width\) array, got shape \(1, 64, 64\): pass "
                                           "frames one at a time, without a batch or channel axis"),
     (np.full((64, 64, 3), 255, np.uint8), r"got shape \(64, 64, 3\)"),
-    (np.zeros((64, 64), np.uint8), "no object pixel in this uint8 mask above mask_threshold 127$"),
-    (np.zeros((64, 64), bool), "no object pixel in this bool mask"),
-    (np.ones((64, 64), np.uint8), r"its brightest pixel is 1; a 0/1 mask needs mask_threshold 0"),
+    # array_to_mask's own argument is `threshold` (mask_threshold is the node's parameter), and it does not apply
+    # to a bool mask: the refusals named mask_threshold for both
+    (np.zeros((64, 64), np.uint8), "no object pixel in this uint8 mask above threshold 127$"),
+    (np.zeros((64, 64), bool), r"no object pixel \(True\) in this bool mask$"),
+    (np.ones((64, 64), np.uint8), r"above threshold 127 \(its brightest pixel is 1; pass a 0/1 mask as bool, or "
+                                  r"threshold=0\)$"),
+    (np.full((64, 64), 1, np.uint16), r"in this uint16 mask above threshold 127 \(its brightest pixel is 1; pass a "
+                                      r"0/1 mask as bool, or threshold=0\)$"),
     (np.ones((1, 5000), bool), r"image 5000x1 \(letterboxed to 5000x5000\) exceeds max_image_pixels=16777216"),
 ])
 def test_an_array_the_node_would_not_take_is_refused_saying_what_was_expected(pixels, message):

@@ -200,6 +200,36 @@ def test_topics_then_reading_walk_a_killed_writers_file_once_each(tmp_path, monk
         assert [m.log_time_ns for m in reader] == sorted(stamps) and len(decompressed) == 3 * walk
 
 
+@pytest.mark.parametrize("closed", [False, True], ids=["still-writing", "closed-since"])
+def test_a_file_that_grew_since_an_earlier_pass_is_learnt_anew(tmp_path, closed):
+    """A recorder still writing (`info`, `replay --recover` or `repair` of a bag being recorded): topics() walked the
+    file as it was, and reading it once it had grown used that walk's chunk start times, which know nothing of the
+    chunks written since: a message of a later chunk logged before those of an earlier one came out of log-time order,
+    with a warning blaming "the summary's chunk indexes" of a file without a summary. And once the recorder had closed
+    the file, reading it still said it was truncated. What a pass learns is kept only while the file keeps its size."""
+    path = tmp_path / "live"
+    stamps = [0, 10, 20, 30, 15, 40]  # the fifth message (chunk) is logged before the fourth
+    file = path / "live_0.mcap"
+    writer = BagWriter(path, chunk_size=1)  # one message per chunk, each on disk as it is written
+    writer.add_topic("/a", "sensor_msgs/msg/Image")
+    sizes = []
+    for i, stamp in enumerate(stamps):
+        writer.write("/a", stamp, messages.mask_message(np.full((1, 1), i, np.uint8), stamp, "f"))
+        sizes.append(file.stat().st_size)
+    writer.close() if closed else writer._stream.close()  # closed: with its summary; else as a kill leaves it
+    whole = file.read_bytes()
+    file.write_bytes(whole[: sizes[3]])  # the file when the first four chunks were written
+    reader = BagReader(path, recover=True)
+    with pytest.warns(UserWarning, match="truncated"):
+        assert reader.topics() == {"/a": "sensor_msgs/msg/Image"}
+    file.write_bytes(whole)  # written on since
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert [m.log_time_ns for m in reader] == sorted(stamps)
+    unexpected = [str(w.message) for w in caught if "read late" in str(w.message) or closed]
+    assert not unexpected, unexpected
+
+
 def test_independent_reader_decodes_with_types_from_the_bag(bag):
     path, written = bag
     typestore = get_typestore(Stores.EMPTY)

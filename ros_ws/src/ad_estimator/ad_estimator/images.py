@@ -95,19 +95,24 @@ def array_to_mask(array: np.ndarray, max_pixels: int = MAX_IMAGE_PIXELS,
     if array.ndim != 2:
         raise ImageRejected("malformed", f"a mask is one 2-D (height, width) array, got shape {array.shape}: pass "
                                          "frames one at a time, without a batch or channel axis")
-    what = f"{array.dtype} mask"
-    if array.dtype == bool:
-        array = array.astype(np.uint8) * np.uint8(255)  # True is object whatever the threshold
-    elif array.dtype.kind != "u" or array.dtype.itemsize > 2:
+    if array.dtype != bool and (array.dtype.kind != "u" or array.dtype.itemsize > 2):
         raise ImageRejected("encoding", f"a mask array is uint8 (read as mono8), uint16 (as mono16) or bool, got "
                                         f"{array.dtype}; threshold a float mask yourself (e.g. probabilities > 0.5)")
     check_size(*array.shape, max_pixels)
-    return _pixels_to_mask(array, threshold, what)
+    if array.dtype == bool:  # True is object whatever the threshold
+        if not array.any():
+            raise ImageRejected("empty", "no object pixel (True) in this bool mask")
+        return array.astype(np.uint8) * np.uint8(255)
+    # its own argument is `threshold` (the node's parameter is mask_threshold), and a 0/1 mask can come as bool
+    return _pixels_to_mask(array, threshold, f"{array.dtype} mask", "threshold",
+                           "pass a 0/1 mask as bool, or threshold=0")
 
 
-def _pixels_to_mask(pixels: np.ndarray, threshold: int | None, what: str) -> np.ndarray:
+def _pixels_to_mask(pixels: np.ndarray, threshold: int | None, what: str, setting: str = "mask_threshold",
+                    zero_one: str = "a 0/1 mask needs mask_threshold 0") -> np.ndarray:
     """(height, width) uint8 or uint16 pixels -> a new uint8 mask: {0, 255} by the threshold (scaled by
-    257 for 16 bit), or the levels 0..255 for threshold None."""
+    257 for 16 bit), or the levels 0..255 for threshold None. A refusal names the threshold as `setting`
+    and says what a 0/1 mask needs (`zero_one`)."""
     wide = pixels.dtype.itemsize == 2
     if threshold is None:
         mask = (pixels // 257).astype(np.uint8) if wide else np.array(pixels, np.uint8)
@@ -115,7 +120,7 @@ def _pixels_to_mask(pixels: np.ndarray, threshold: int | None, what: str) -> np.
         mask = (pixels > (threshold * 257 if wide else threshold)).astype(np.uint8) * np.uint8(255)
     if not mask.any():  # no object: an estimate from it would be made of nothing
         brightest = int(pixels.max())
-        above = "" if threshold is None else f" above mask_threshold {threshold}" + (
-            f" (its brightest pixel is {brightest}; a 0/1 mask needs mask_threshold 0)" if brightest else "")
+        above = "" if threshold is None else f" above {setting} {threshold}" + (
+            f" (its brightest pixel is {brightest}; {zero_one})" if brightest else "")
         raise ImageRejected("empty", f"no object pixel in this {what}{above}")
     return mask

@@ -640,6 +640,9 @@ class _FileScan:
     recovered: str = ""  # when recovering a truncated file: what was recovered and lost, said after the scan
     # Without a summary: the earliest log time of each data-section record holding messages, by offset, once walked
     starts: dict[int, int] | None = None
+    # The file's size when the above was learnt: a file that has grown since (a recorder still writing, or closing it
+    # with its summary) is learnt anew (BagReader._begin_pass)
+    size: int | None = None
 
 
 _RECORD_TYPES = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel}
@@ -713,7 +716,8 @@ class BagReader:
     naming --recover, where it would break the order; recovering reads those messages late, with a warning.
     raw=True yields the CDR bytes instead of decoded messages.
     `problems` lists the reader's warnings, each once however often the files are scanned. What a walk over a file
-    without a summary learns (its topics, its chunks' start times) is kept: topics() then reading walks it twice.
+    without a summary learns (its topics, its chunks' start times) is kept: topics() then reading walks it twice. It is
+    kept while the file keeps its size: one that grows meanwhile (a recorder still writing) is walked anew.
     """
 
     def __init__(
@@ -792,6 +796,7 @@ class BagReader:
         result = {}
         for scan in self._scans:
             with _mapped(scan.path) as data:
+                self._begin_pass(scan, data)
                 summary = self._read_summary(scan, data)
                 if summary is None:
                     self._record_starts(scan, data)  # the walk that reading takes first, made once
@@ -951,7 +956,17 @@ class BagReader:
     def _scan_file(self, scan: _FileScan) -> Iterator[tuple[int, int, Channel, bytes]]:
         """Messages of one file as (log_time, order, channel, data), in log-time order."""
         with _mapped(scan.path) as data:
+            self._begin_pass(scan, data)
             yield from self._scan_data(scan, data, self._read_summary(scan, data))
+
+    @staticmethod
+    def _begin_pass(scan: _FileScan, data) -> None:
+        """A pass over the file (`data`, as mapped for it): what earlier passes learnt of it (its records' start
+        times, schemas and channels, its damage and what was recovered) is kept only while the file keeps its size.
+        A recorder still writing appends chunks that the kept start times know nothing of (their messages came out of
+        log-time order), and closing the file adds its summary (it was still said to be truncated)."""
+        if scan.size != len(data):
+            vars(scan).update(vars(_FileScan(scan.path, size=len(data))))
 
     def _scan_data(self, scan: _FileScan, data, chunk_indexes: list[ChunkIndex] | None
                    ) -> Iterator[tuple[int, int, Channel, bytes]]:
