@@ -211,12 +211,7 @@ class FrameWindow:
         Returns the estimates due now: usually none; the previous episode's last one when this frame
         restarts the window (see flush); at most one for the current episode.
         """
-        try:
-            # a NumPy stamp wraps (uint64 went "backwards" at every frame: no estimate) or overflows
-            stamp_ns = operator.index(stamp_ns)
-        except TypeError:
-            raise TypeError(f"stamp_ns is a whole number of nanoseconds, got {type(stamp_ns).__name__} {stamp_ns!r}; "
-                            "from seconds: round(t * 1e9)") from None
+        stamp_ns = whole_ns(stamp_ns, "stamp_ns")
         self.stats.frames += 1
         size = frame.shape
         outputs: list[WindowOutput] = []
@@ -360,6 +355,16 @@ def clip_stamps(stamps_ns: list[int], frame_interval: float) -> list[int]:
     return list(stamps_ns)
 
 
+def whole_ns(stamp, subject: str) -> int:
+    """A stamp as a Python int of nanoseconds; TypeError naming `subject` for anything else (a float). A NumPy
+    integer is taken as its value: kept, a uint64 wrapped in differences (every frame went "backwards")."""
+    try:
+        return operator.index(stamp)
+    except TypeError:
+        raise TypeError(f"{subject} is a whole number of nanoseconds, got {type(stamp).__name__} {stamp!r}; "
+                        "from seconds: round(t * 1e9)") from None
+
+
 def stamp_text(ns: int) -> str:
     """A stamp as sec.nanosec, exactly (a float of ns since 1970 rounds them)."""
     sec, nanosec = ns_to_stamp(ns)
@@ -410,13 +415,7 @@ def clip_output(stamps_ns: Sequence[int], masks: Sequence, encode: Encode,
         raise ValueError(f"{len(stamps_ns)} stamps for {len(masks)} frames: give one stamp per frame")
     if not len(masks):
         raise ValueError("empty clip: send at least one frame")
-    stamps = []
-    for i, stamp in enumerate(stamps_ns):
-        try:
-            stamps.append(operator.index(stamp))
-        except TypeError:
-            raise TypeError(f"frame {i}: a stamp is a whole number of nanoseconds, got {type(stamp).__name__} "
-                            f"{stamp!r}; from seconds: round(t * 1e9)") from None
+    stamps = [whole_ns(stamp, f"frame {i}: a stamp") for i, stamp in enumerate(stamps_ns)]
     slot_stamps = clip_stamps(stamps, frame_interval)  # ValueError naming the frame out of order
     # Never a gap restart: each frame placed lies within (frame_count + 1) intervals of the one before it.
     gap_threshold = min(MAX_SECONDS, (frame_count + 2) * frame_interval)

@@ -806,19 +806,20 @@ class BagReader:
             for channel in scan.channels.values():
                 schema = scan.schemas.get(channel.schema_id)
                 result[channel.topic] = schema.name if schema else ""
-        self._scanned(self._scans)
+        self._scanned()
         return result
 
     def __iter__(self) -> Iterator[BagMessage]:
         streams = [self._iter_file(i, scan) for i, scan in enumerate(self._scans)]
         for log_time, _, topic, message in heapq.merge(*streams, key=lambda item: (item[0], item[1])):
             yield BagMessage(topic, log_time, message)
-        self._scanned(self._scans)
+        self._scanned()
 
-    def _scanned(self, scans: list[_FileScan]) -> None:
+    def _scanned(self) -> None:
         """After a pass over the files: BagUnreadable if recovering found no message in any of them
         and damage in some (files only read through their summary count as readable); otherwise
         the warnings of what was recovered from each truncated file."""
+        scans = self._scans
         if all(scan.messages == 0 for scan in scans) and (damaged := [scan for scan in scans if scan.damage]):
             if len(scans) == 1:
                 raise BagUnreadable(f"nothing readable in {scans[0].path}: it {scans[0].damage}")

@@ -93,7 +93,6 @@ class SimPublishers:
     def __init__(self, node: Node, views: int, prefix: str = messages.DEFAULT_PREFIX, depth: int = messages.QOS_DEPTH,
                  stop: threading.Event | None = None, ack_timeout: float = ACK_TIMEOUT):
         self.logger = node.get_logger()
-        self.depth = depth
         self.ack_timeout = ack_timeout
         self.stop = stop or threading.Event()  # once set, nobody waits for acknowledgements (a stopping node)
         self.by_topic = {}
