@@ -1,4 +1,4 @@
-"""Patch a private copy of instances.py for section 18's scene probes: upright | pose_per_shape."""
+"""Patch a private copy of instances.py for the scene probes of sections 18 and 19: upright | pose_per_shape | fixed_motion."""
 import pathlib, sys
 
 variant, path = sys.argv[1], pathlib.Path(sys.argv[2])
@@ -16,7 +16,14 @@ edits = {
         ("        self.camera_seed = int(rng.integers(0, 2**63))\n",
          "        rng = np.random.Generator(np.random.PCG64(self.seed)); rng.uniform(size=9)  # probe\n"
          "        self.camera_seed = int(rng.integers(0, 2**63))\n")],
-}[variant]
+    # orientation random as in the benchmark; drop gap, offset and velocity the same for every instance
+    # (the middle of their ranges, straight down); the seed's stream advances as before
+    "fixed_motion": [("        self.camera_seed = int(rng.integers(0, 2**63))\n",
+                      "        self.drop_gap, self.jitter, self.velocity = 0.15, (0.0, 0.0), (0.0, 0.0, -0.25)  # probe\n"
+                      "        self.camera_seed = int(rng.integers(0, 2**63))\n")],
+}
+edits["upright_fixed_motion"] = edits["upright"] + edits["fixed_motion"]
+edits = edits[variant]
 for old, new in edits:
     assert text.count(old) == 1, (variant, old)
     text = text.replace(old, new)
