@@ -109,3 +109,23 @@ def recorder_counts(log: str) -> tuple[int, int]:
     match = re.search(r"received (\d+), written (\d+) messages", log)
     assert match, f"recorder did not log its counts:\n{log}"
     return int(match.group(1)), int(match.group(2))
+
+
+IMPORTING_RCLPY = re.compile(r"^import time:.*\|\s+rclpy\b", re.M)  # Python's import-time report: an rclpy module came in
+
+
+def interrupt_while_starting(args: list[str], log: Path, delay: float, timeout: float = 60.0) -> tuple[int, list[str]]:
+    """Start `args` (a node executable, as from scripts/adrun) with Python's import-time report on, send SIGINT `delay`
+    s after the report says the first rclpy module was imported (deep in the imports that come before the node handles
+    signals: most of its first second), and return its exit status and its output lines less the report's."""
+    env = dict(os.environ, PYTHONPROFILEIMPORTTIME="1", PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0")
+    process = subprocess.Popen(args, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT)
+    _started.append(process)
+    deadline = time.monotonic() + timeout
+    while not IMPORTING_RCLPY.search(log.read_text()):
+        if process.poll() is not None or time.monotonic() > deadline:
+            raise AssertionError(f"{args[1:3]} imported no rclpy module (exit status {process.poll()}):\n{log.read_text()}")
+        time.sleep(0.002)
+    time.sleep(delay)
+    status = stop(process, signal.SIGINT, timeout)
+    return status, [line for line in log.read_text().splitlines() if not line.startswith("import time:")]

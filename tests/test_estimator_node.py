@@ -34,6 +34,7 @@ from ad_estimator.window import FrameWindow, clip_output
 from ad_sim.rosbag import BagReader
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
 from estimator_ros import image_msg, ros_context, spin_until_shutdown, tracked, wait_for
+from ros_procs import ADRUN, interrupt_while_starting, kill_leftovers
 from sim_fixtures import write_coverage_bag
 
 pytestmark = pytest.mark.ros
@@ -821,6 +822,24 @@ def test_signals_in_a_row_through_the_shutdown_exit_cleanly(model_paths, ros_dom
     assert out.count("shutting down") == 1, out
 
 
+def test_ctrl_c_while_starting_exits_quietly_as_any_ctrl_c(model_paths, ros_domain_id, tmp_path):
+    """A Ctrl-C during the node's imports (most of its first second, before it handles signals) printed Python's
+    KeyboardInterrupt traceback, and the process died of the signal. Wherever it lands before the node is up, the
+    node now exits with status 0 as after any Ctrl-C, with one line if it came during the imports."""
+    during_imports = 0
+    try:
+        for attempt, delay in enumerate((0.0, 0.0, 0.05, 0.15, 0.3, 0.6, 1.0, 2.0)):
+            args = [str(ADRUN), "ad_estimator", "node", "--ros-args", "-p", f"model_path:={model_paths['streaming']}",
+                    "-r", "mask:=/estimator_test/interrupted"]
+            status, lines = interrupt_while_starting(args, tmp_path / f"{attempt}.log", delay)
+            text = "\n".join(lines)
+            assert status == 0 and "Traceback" not in text and "KeyboardInterrupt" not in text, (delay, text)
+            during_imports += lines == ["ad_estimator: interrupted while starting"]
+    finally:
+        kill_leftovers()
+    assert during_imports, "no Ctrl-C landed during the imports"
+
+
 def test_the_installed_example_params_file_configures_the_node(model_paths, ros_domain_id):
     """config/anytime.yaml, installed to share/ad_estimator/config, is read by the node through
     --params-file (what ros2 run and launch files pass), and the node says what it applied."""
@@ -912,3 +931,46 @@ def test_a_second_sigint_while_a_clip_call_holds_up_the_shutdown_exits_cleanly(r
         out = "".join(lines) + proc.communicate(timeout=20)[0]
     assert_exited_cleanly(proc, out)
     assert "shutting down" in out and time.monotonic() - stopped < 5, out
+
+
+@pytest.mark.parametrize("signals", [[signal.SIGINT], [signal.SIGINT, signal.SIGTERM]], ids=["one", "two"])
+def test_signals_while_starting_up_stop_the_start_up(model_paths, signals, ros_domain_id):
+    """A signal while the node started up (here: a model that takes 5 s to load) took effect only once the node was
+    up: it spun, then finished its input (here made to take 60 s, as one a second signal should cut short), and a
+    second signal during start-up was ignored. Start-up now ends with the step in progress (the model's loading: one
+    call into onnxruntime), and the node exits cleanly without spinning or finishing input it never took."""
+    code = ("import sys, time\nfrom ad_estimator import node\n"
+            "load = node.EstimatorModel.load\n"
+            "def slow_load(*args, **kwargs):\n    print('loading the model', flush=True)\n    time.sleep(5)\n"
+            "    return load(*args, **kwargs)\n"
+            "def slow_finish(self, timeout=None):\n    print('finishing the input', flush=True)\n    time.sleep(60)\n"
+            "    return True\n"
+            "node.EstimatorModel.load = slow_load\nnode.EstimatorNode.finish = slow_finish\n"
+            f"sys.exit(node.main(['node', '--ros-args', '-p', 'model_path:={model_paths['streaming']}', "
+            "'-r', 'mask:=/estimator_test/starting']))\n")
+    with killed_at_exit(subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                                         stderr=subprocess.STDOUT, text=True)) as proc:
+        lines = []
+        read_until(proc, lines, "loading the model")
+        for sig in signals:
+            proc.send_signal(sig)
+        try:
+            out = "".join(lines) + proc.communicate(timeout=30)[0]  # the load's 5 s, and the clean-up
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise AssertionError("".join(lines) + proc.communicate()[0]) from None
+    assert_exited_cleanly(proc, out)
+    assert "finishing the input" not in out and "shutting down" in out, out
+
+
+def test_a_later_signal_that_came_before_the_wait_for_the_input_still_cuts_it_short():
+    """A second signal that came before the main thread began its wait for the input's finish (during start-up, or
+    as the first signal woke it) was ignored, and the wait ran its full time."""
+    from ad_estimator.node import StopSignals
+
+    stop = StopSignals()
+    stop(signal.SIGINT, None)
+    stop(signal.SIGTERM, None)
+    waited = []
+    stop.interruptible(lambda: waited.append(True))
+    assert stop.requested.is_set() and not waited

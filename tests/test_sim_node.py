@@ -13,7 +13,8 @@ import time
 import numpy as np
 import pytest
 import yaml
-from ros_procs import kill_leftovers, ADRUN, REPO_ROOT, recorder_counts, start, stop, wait_for_log
+from ros_procs import (kill_leftovers, ADRUN, REPO_ROOT, interrupt_while_starting, recorder_counts, start, stop,
+                       wait_for_log)
 from sim_fixtures import as_plain
 
 from ad_sim.rosbag import BagReader
@@ -176,6 +177,7 @@ def test_single_instance_from_parameters_and_bad_parameters(ros_domain_id, tmp_p
     ("node", {"qos_depth": 2**31}, "qos_depth must be <= 2147483647, got 2147483648"),
     ("node", {"qos_depth": -3}, "qos_depth must be >= 1, got -3"),
     ("node", {"ack_timeout": 0.0}, "ack_timeout must be > 0 (seconds), got 0.0"),
+    ("node", {"loop_memory_mb": -1}, "loop_memory_mb must be >= 0, got -1"),
     ("node", {"real_time_factor": "abc"}, "real_time_factor must be a number, got 'abc'"),
     ("node", {"shape": "sphere", "youngs_modulus": "abc"}, "youngs_modulus must be a number, got 'abc'"),
     ("node", {"topic_prefix": "1bad"}, "Invalid topic name: topic name token must not start with a number: '1bad/instance'"),
@@ -346,12 +348,13 @@ ad_sim.episode.simulate_batch = simulate_batch
 """
 
 
-@pytest.mark.parametrize("loop_memory", [None, 0])
+@pytest.mark.parametrize("loop_memory_mb", [None, 1, 0])
 def test_a_looping_node_replays_its_episodes_instead_of_simulating_them_again(rclpy_context, ros_domain_id, tmp_path,
-                                                                               loop_memory):
+                                                                               loop_memory_mb):
     """Every pass simulated every episode again (a pause of seconds between passes on CPU). Now the first pass's
     episodes are replayed, the same messages with the stamps and indices of their place in the stream; a pass
-    over LOOP_MEMORY (0 here) is simulated again, as before."""
+    over loop_memory_mb (1 MiB here: an episode of 1 view takes 1.6 MB; 0: never kept) is simulated again, as
+    before."""
     import os
     import sys
 
@@ -360,10 +363,10 @@ def test_a_looping_node_replays_its_episodes_instead_of_simulating_them_again(rc
     soft = {"shape": "sphere", "material": "jelly", "parameters": {"youngs_modulus": 2.0e4, "poissons_ratio": 0.3}}
     instance_file = tmp_path / "soft.yaml"
     instance_file.write_text(yaml.safe_dump([dict(soft, seed=3), dict(soft, seed=4)]))
-    script = COUNTING_SIMULATION + ("" if loop_memory is None else f"ad_sim.sim_node.LOOP_MEMORY = {loop_memory}\n")
-    args = [sys.executable, "-c", script + "ad_sim.sim_node.main(sys.argv)\n", "--ros-args",
+    args = [sys.executable, "-c", COUNTING_SIMULATION + "ad_sim.sim_node.main(sys.argv)\n", "--ros-args",
             "-p", f"instances:={instance_file}", "-p", "real_time_factor:=0.0", "-p", "batch:=1", "-p", "loop:=true",
             "-p", "wait_for_subscribers:=1"]
+    args += [] if loop_memory_mb is None else ["-p", f"loop_memory_mb:={loop_memory_mb}"]
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id), PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0")
     log = tmp_path / "node.log"
     listener, executor, received = a_listener(rclpy_context)
@@ -386,7 +389,7 @@ def test_a_looping_node_replays_its_episodes_instead_of_simulating_them_again(rc
     text = log.read_text()
     simulated = re.findall(r"^simulating (\S+)$", text, re.M)
     ids = ["custom-sphere-jelly-0000", "custom-sphere-jelly-0001"]
-    if loop_memory is None:
+    if loop_memory_mb is None:
         assert simulated == ids and "loop: the later passes replay the 2 episode(s) simulated" in text, text
     else:
         assert simulated[:4] == ids + ids and "each pass simulates them again" in text, text
@@ -411,6 +414,22 @@ def test_a_device_this_machine_lacks_is_refused_at_start(ros_domain_id, tmp_path
     log = (tmp_path / "bad.log").read_text()
     assert log.splitlines()[-1].startswith("ad_sim node: Warp device 'bogus' is not available; this machine has: "), log
     assert "episode 0" not in log and "Traceback" not in log
+
+
+@pytest.mark.parametrize("executable", ["node", "record"])
+def test_ctrl_c_while_starting_exits_quietly_as_any_ctrl_c(executable, ros_domain_id, tmp_path):
+    """A Ctrl-C during the executable's imports (most of its first second, before it handles signals) printed
+    Python's KeyboardInterrupt traceback, and the process died of the signal. Wherever it lands before the node is
+    up, the node now exits with status 0 as after any Ctrl-C, with one line if it came during the imports."""
+    during_imports = 0
+    for attempt, delay in enumerate((0.0, 0.0, 0.05, 0.15, 0.3, 0.6, 1.0, 2.0)):
+        args = [str(ADRUN), "ad_sim", executable, "--ros-args"]
+        args += ["-p", f"output:={tmp_path / f'bag{attempt}'}"] if executable == "record" else []
+        status, lines = interrupt_while_starting(args, tmp_path / f"{attempt}.log", delay)
+        text = "\n".join(lines)
+        assert status == 0 and "Traceback" not in text and "KeyboardInterrupt" not in text, (delay, text)
+        during_imports += lines == [f"ad_sim {executable}: interrupted while starting"]
+    assert during_imports, "no Ctrl-C landed during the imports"
 
 
 def test_ctrl_c_does_not_wait_for_a_recorder_that_died(rclpy_context, ros_domain_id, tmp_path):
@@ -470,7 +489,7 @@ def test_a_mistyped_parameter_is_warned_about_not_silently_ignored(ros_domain_id
 
 
 def test_help_lists_the_parameters():
-    for executable, parameters in (("node", ("instances", "real_time_factor", "views", "wait_for_subscribers", "ack_timeout")), ("record", ("output", "topics", "max_bag_size"))):
+    for executable, parameters in (("node", ("instances", "real_time_factor", "views", "wait_for_subscribers", "ack_timeout", "loop_memory_mb")), ("record", ("output", "topics", "max_bag_size"))):
         result = subprocess.run([str(ADRUN), "ad_sim", executable, "--help"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
         assert result.returncode == 0, result.stderr
         assert f"ros2 run ad_sim {executable}" in result.stdout

@@ -22,28 +22,31 @@ import threading
 import time
 from collections import deque
 
-import numpy as np
-import rclpy
-from ad_msgs.msg import MaterialEstimate
-from ad_msgs.srv import EstimateMaterial
-from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy._rclpy_pybind11 import RCLError
-from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.duration import Duration
-from rclpy.node import Node
-from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from rclpy.signals import SignalHandlerOptions
-from sensor_msgs.msg import Image
-from std_srvs.srv import Trigger
+from ad_sim.dds import quiet_interrupt
 
-from ad_estimator.images import ImageRejected, check_header, image_to_mask
-from ad_estimator.model import BUNDLED_MODEL, TRAINED_EXTENT, Estimate, EstimatorModel, ModelError, object_extent
-from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, RANGES, check_parameters, model_window
-from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
-from ad_sim.dds import declare_parameters, node_cli, number
+with quiet_interrupt("ad_estimator"):  # a Ctrl-C before main() handles signals: no traceback
+    import numpy as np
+    import rclpy
+    from ad_msgs.msg import MaterialEstimate
+    from ad_msgs.srv import EstimateMaterial
+    from builtin_interfaces.msg import Time
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from rclpy.exceptions import ParameterException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy._rclpy_pybind11 import RCLError
+    from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+    from rclpy.duration import Duration
+    from rclpy.node import Node
+    from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import Image
+    from std_srvs.srv import Trigger
+
+    from ad_estimator.images import ImageRejected, check_header, image_to_mask
+    from ad_estimator.model import BUNDLED_MODEL, TRAINED_EXTENT, Estimate, EstimatorModel, ModelError, object_extent
+    from ad_estimator.parameters import DEFAULT_INPUT_TOPIC, PARAMETERS, RANGES, check_parameters, model_window
+    from ad_estimator.window import WindowOutput, clip_output, ns_to_stamp, stamp_to_ns
+    from ad_sim.dds import declare_parameters, node_cli, number
 
 LOG_THROTTLE_S = 5.0
 # At shutdown, in all (under the 5 s a launch system waits between SIGINT and SIGTERM): taking the frames delivered
@@ -566,12 +569,14 @@ class StopSignals:
     """SIGINT and SIGTERM (what launch sends) as a request to stop: the node then finishes its input (finish)
     before the context goes. rclpy's own handlers shut the context down at once, and the estimates of frames
     still queued or of the window not yet flushed were lost. A later signal cuts that wait short (KeyboardInterrupt,
-    raised only inside `interruptible`) and is otherwise ignored: the clean-up is short (its waits have time limits)
-    and must run to its end. Raised wherever the main thread was, a third Ctrl-C (or launch's SIGTERM after its
-    SIGINT) came out of rclpy destroying the node as a traceback, or of a thread left in rclpy as an abort."""
+    raised only inside `interruptible`), or skips it if it came before (during start-up, say), and is otherwise
+    ignored: the clean-up is short (its waits have time limits) and must run to its end. Raised wherever the main
+    thread was, a third Ctrl-C (or launch's SIGTERM after its SIGINT) came out of rclpy destroying the node as a
+    traceback, or of a thread left in rclpy as an abort."""
 
     def __init__(self):
         self.requested = threading.Event()
+        self.repeated = False  # a later signal came
         self._interruptible = False  # set by the main thread while a later signal may cut its wait short
 
     def install(self) -> None:
@@ -581,15 +586,19 @@ class StopSignals:
     def __call__(self, signum, frame) -> None:
         if not self.requested.is_set():
             self.requested.set()
-        elif self._interruptible:
+            return
+        self.repeated = True
+        if self._interruptible:
             self._interruptible = False  # one KeyboardInterrupt: none while it is being handled
             raise KeyboardInterrupt
 
     def interruptible(self, wait) -> None:
-        """wait(), cut short by a later signal."""
-        self._interruptible = True
-        try:
-            wait()
+        """wait(), cut short by a later signal; not begun if one came already."""
+        try:  # (set and cleared inside: a signal just before or after wait() is caught here too)
+            self._interruptible = True
+            if not self.repeated:
+                wait()
+            self._interruptible = False
         except KeyboardInterrupt:
             pass
         finally:
@@ -603,14 +612,20 @@ class StopSignals:
 
 
 def main(args=None) -> int:
+    stop = StopSignals()
+    stop.install()  # first: a signal from here on stops the start-up (before, ad_sim.dds.quiet_interrupt)
+    atexit.register(stop.ignore)  # at the interpreter's exit: an in-process caller of main keeps its signals
     parse_cli(sys.argv if args is None else args)
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
-    stop = StopSignals()
-    stop.install()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = executor = spinner = None
     try:
-        node = EstimatorNode()
+        # A signal during start-up ends it with the step in progress (the model loads in one call into onnxruntime,
+        # which a signal cannot cut short), and the node exits: it never spun, so it took no input to finish.
+        if not stop.requested.is_set():
+            node = EstimatorNode()
+        if stop.requested.is_set():
+            return 0
         executor = make_executor()
         executor.add_node(node)
         failure = []  # what ended the executor's thread, raised here as when it spun on this one
@@ -649,7 +664,6 @@ def main(args=None) -> int:
             print(f"ad_estimator: shutting down: {node.statistics()}", file=sys.stderr, flush=True)
             node.destroy_node()
         rclpy.try_shutdown()
-        atexit.register(stop.ignore)  # at the interpreter's exit: an in-process caller of main keeps its signals
     return 0
 
 

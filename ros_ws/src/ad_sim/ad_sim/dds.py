@@ -1,7 +1,8 @@
-"""ROS process set-up shared by the nodes: their command line (non_ros_args), their parameters
-(declare_parameters, number), the rclpy message class of a type name and the QoSProfile of a QoS
-description as bags hold them (message_class, qos_from_profile) and, for those that publish the
-simulator's topics (simulator, replay), DDS writer settings (use_fast_heartbeat).
+"""ROS process set-up shared by the nodes: a Ctrl-C during their imports (quiet_interrupt), their command
+line (non_ros_args), their parameters (declare_parameters, number), the rclpy message class of a type name and
+the QoSProfile of a QoS description as bags hold them (message_class, qos_from_profile) and, for those that
+publish the simulator's topics (simulator, replay), DDS writer settings (use_fast_heartbeat). It imports
+nothing of ROS itself until a function needs it: the nodes import it first, before the imports it guards.
 
 Reliable writers repair a lost sample and learn of acknowledgements at their heartbeats: every
 3 s by default on Fast DDS. That caps paced playback and can hold a stream up for seconds after
@@ -10,26 +11,49 @@ one lost packet, so these nodes load a default writer profile with 20 ms heartbe
 """
 from __future__ import annotations
 
+import contextlib
 import difflib
 import importlib
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-
+if TYPE_CHECKING:
+    from rclpy.qos import QoSProfile
 
 FAST_HEARTBEAT_PROFILE = Path(__file__).resolve().parent / "data" / "dds" / "fast_heartbeat.xml"
 MAX_QOS_DEPTH = 2**31 - 1  # rclpy refuses a larger history depth (a TypeError from its rmw_qos_profile_t)
-# QoS policies by rosbag2's names; older rosbag2 metadata stores the rmw enum values instead.
-_RELIABILITY = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT,
-                1: ReliabilityPolicy.RELIABLE, 2: ReliabilityPolicy.BEST_EFFORT}
-_DURABILITY = {"transient_local": DurabilityPolicy.TRANSIENT_LOCAL, "volatile": DurabilityPolicy.VOLATILE,
-               1: DurabilityPolicy.TRANSIENT_LOCAL, 2: DurabilityPolicy.VOLATILE}
-_HISTORY = {"keep_last": HistoryPolicy.KEEP_LAST, "keep_all": HistoryPolicy.KEEP_ALL,
-            1: HistoryPolicy.KEEP_LAST, 2: HistoryPolicy.KEEP_ALL}
+# QoS policies (the names of rclpy's ReliabilityPolicy, DurabilityPolicy and HistoryPolicy members) by rosbag2's
+# names; older rosbag2 metadata stores the rmw enum values instead.
+_RELIABILITY = {"reliable": "RELIABLE", "best_effort": "BEST_EFFORT", 1: "RELIABLE", 2: "BEST_EFFORT"}
+_DURABILITY = {"transient_local": "TRANSIENT_LOCAL", "volatile": "VOLATILE", 1: "TRANSIENT_LOCAL", 2: "VOLATILE"}
+_HISTORY = {"keep_last": "KEEP_LAST", "keep_all": "KEEP_ALL", 1: "KEEP_LAST", 2: "KEEP_ALL"}
 _UNKNOWN_HISTORY = ("unknown", 3)  # RMW_QOS_POLICY_HISTORY_UNKNOWN, by name or enum value
+
+
+class StartInterrupted(SystemExit, KeyboardInterrupt):
+    """A Ctrl-C while a node executable imported its modules (quiet_interrupt): a SystemExit to the interpreter, which
+    then exits with its status and no traceback, and still a KeyboardInterrupt to whoever imported the module in its
+    own process and catches one (pytest, a notebook)."""
+
+
+@contextlib.contextmanager
+def quiet_interrupt(prog: str):
+    """Around a node executable's imports (rclpy, numpy, ...: most of its first second), before its main() installs
+    its signal handlers: a Ctrl-C there, which printed Python's KeyboardInterrupt traceback, exits with one line on
+    stderr and status 0, as a Ctrl-C the node handles does (StartInterrupted). One in the initialisation of a C
+    extension (onnxruntime's, rclpy's) comes out of its import as an ImportError that the KeyboardInterrupt caused."""
+    try:
+        yield
+    except BaseException as exc:
+        cause = exc
+        while cause is not None and not isinstance(cause, KeyboardInterrupt):
+            cause = cause.__cause__ or cause.__context__
+        if cause is None or isinstance(exc, StartInterrupted):  # not a Ctrl-C, or one said already
+            raise
+        print(f"{prog}: interrupted while starting", file=sys.stderr, flush=True)
+        raise StartInterrupted(0) from None
 
 
 def use_fast_heartbeat() -> None:
@@ -87,6 +111,8 @@ def declare_parameters(node, parameters, ranges: dict | None = None) -> None:
     shows, as integer or floating-point ranges by the default's type. They are for the reader: the node checks
     the values itself, with messages that say what a parameter means (rclpy would refuse an out-of-range
     value at declaration, before that check, with its own words, and only a value of the default's type)."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
     for name, default, meaning in parameters:
         node.declare_parameter(name, default, ParameterDescriptor(
             description=meaning, read_only=True, dynamic_typing=isinstance(default, float),
@@ -134,22 +160,25 @@ def qos_from_profile(profile: dict, default: dict, unusable: list[str] | None = 
     what rosbag2 records for the publishers it discovers, takes the default history and depth too. Any other
     setting that cannot be used (malformed, system default or unknown, depth 0 with keep_last) takes the default
     as well, and is described in `unusable`."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
     if profile.get("history") in _UNKNOWN_HISTORY and profile.get("depth") == 0:
         # The middleware does not say: the default keep_last depth is meant, not a problem to report on every
         # topic of every such bag.
         profile = {k: v for k, v in profile.items() if k not in ("history", "depth")}
     problems = [] if unusable is None else unusable
 
-    def setting(name, table):
+    def setting(name, table, policy):
         value = profile.get(name, default[name])
         # bool is an int to Python (True would read as enum value 1); a list or mapping is not hashable
         if isinstance(value, (str, int)) and not isinstance(value, bool) and value in table:
-            return table[value]
+            return policy[table[value]]
         problems.append(f"{name} {value!r}")
-        return table[default[name]]
+        return policy[table[default[name]]]
 
-    reliability, durability = setting("reliability", _RELIABILITY), setting("durability", _DURABILITY)
-    history, depth = setting("history", _HISTORY), profile.get("depth", default["depth"])
+    reliability = setting("reliability", _RELIABILITY, ReliabilityPolicy)
+    durability = setting("durability", _DURABILITY, DurabilityPolicy)
+    history, depth = setting("history", _HISTORY, HistoryPolicy), profile.get("depth", default["depth"])
     if not (isinstance(depth, int) and not isinstance(depth, bool) and 0 < depth <= MAX_QOS_DEPTH):
         if history == HistoryPolicy.KEEP_LAST:  # keep_all has no use for a depth
             problems.append(f"depth {depth!r}")

@@ -22,18 +22,21 @@ import threading
 import time
 from datetime import datetime, timezone
 
-import rclpy
-from rclpy._rclpy_pybind11 import RCLError
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.exceptions import ParameterException, ParameterUninitializedException
-from rclpy.node import Node
-from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
+from .dds import quiet_interrupt
 
-from . import messages
-from .rosbag import BagError, BagWriteError, BagWriter, header_stamp_ns, load_schema, qos_profile, starts_with_header
-from .dds import declare_parameters, message_class, node_cli, number
+with quiet_interrupt("ad_sim record"):  # a Ctrl-C before main() handles signals: no traceback
+    import rclpy
+    from rclpy._rclpy_pybind11 import RCLError
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.exceptions import ParameterException, ParameterUninitializedException
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+
+    from . import messages
+    from .rosbag import BagError, BagWriteError, BagWriter, header_stamp_ns, load_schema, qos_profile, starts_with_header
+    from .dds import declare_parameters, message_class, node_cli, number
 
 DRAIN_IDLE = 0.3  # s without incoming work after a stop signal before the bag is closed
 DRAIN_MAX = 2.0  # s at most of that draining: a topic that keeps publishing must not hold the stop off
@@ -63,7 +66,8 @@ PARAMETERS = (
     ("topics", Parameter.Type.STRING_ARRAY, "topics to record (names relative to the root namespace too, as ROS resolves "
                                             "them); unset: every simulator topic under topic_prefix, as they appear"),
     ("topic_prefix", messages.DEFAULT_PREFIX, "prefix of the simulator topics"),
-    ("max_bag_size", 0, "split .mcap files at this many bytes; 0: never"),
+    ("max_bag_size", 0, "split .mcap files once one reaches this many bytes (it exceeds them by its last chunk, at most "
+                        "an eighth of them, and its summary); 0: never"),
     ("compression", "zstd", "chunk compression: zstd | lz4 | none"),
     ("stamp_source", "header", "log time of a message: header (its stamp, for types starting with a Header) | receive"),
     ("discovery_period", 0.2, "seconds between looks for new topics"),
@@ -218,15 +222,15 @@ class RecordNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    node_cli("ros2 run ad_sim record", __doc__, PARAMETERS, args)
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop, stop_now = threading.Event(), threading.Event()  # a second Ctrl-C skips the draining
 
     def on_signal(*_):
         (stop_now if stop.is_set() else stop).set()
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM):  # first: from here on a signal stops the node (before: quiet_interrupt)
         signal.signal(sig, on_signal)
+    node_cli("ros2 run ad_sim record", __doc__, PARAMETERS, args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = RecordNode()

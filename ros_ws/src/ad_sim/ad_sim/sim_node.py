@@ -16,7 +16,7 @@ is set already: about 60 episodes/s reach the recorder (benchmarks/record_throug
 QoS: reliable, keep-last qos_depth, volatile (a late subscriber gets the frames published after it joins), but the
 ground truth (<topic_prefix>/instance) is transient local with depth 1: a late subscriber gets the episode now playing,
 not the earlier ones.
-With loop, the episodes of the first pass are kept in memory (up to LOOP_MEMORY) and replayed on the later
+With loop, the episodes of the first pass are kept in memory (up to loop_memory_mb) and replayed on the later
 passes, with stamps that go on increasing, rather than simulated again.
 Set wait_for_subscribers to N to start playing only once every simulator topic has N matched
 subscriptions (e.g. a recorder started first).
@@ -37,25 +37,25 @@ import signal
 import threading
 import time
 
-import rclpy
-from rclpy.duration import Duration
-from rclpy.exceptions import NameValidationException, ParameterException
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
+from .dds import quiet_interrupt
 
-from . import materials, messages
-from .dds import MAX_QOS_DEPTH, declare_parameters, message_class, node_cli, number, qos_from_profile, use_fast_heartbeat
+with quiet_interrupt("ad_sim node"):  # a Ctrl-C before main() handles signals: no traceback
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.exceptions import NameValidationException, ParameterException
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+
+    from . import materials, messages
+    from .dds import (MAX_QOS_DEPTH, declare_parameters, message_class, node_cli, number, qos_from_profile,
+                      use_fast_heartbeat)
 
 LATE_RESTART = 0.5  # s behind schedule (simulation slower than real time) after which pacing restarts from now
 ACK_TIMEOUT = 10.0  # s to wait for subscribers' acknowledgements before warning and going on (default)
 ACK_SLICE = 0.1  # s between looks at the stop flag while waiting for acknowledgements
 WORKER_JOIN_TIMEOUT = 10.0  # s; a stopped worker ends within one simulated frame, well under this
 SINGLE_INSTANCE_PARAMETERS = materials.PARAMETER_NAMES
-# Most a looping node keeps of its first pass to replay it: an episode holds 1.2 MB of tracked particles and 0.4 MB
-# of masks per view, so the small benchmark's train split (360 episodes, 4 views) fits; paper's do not, and are
-# simulated again on every pass (docs/simulator.md).
-LOOP_MEMORY = 1 << 30
 # A frame_id prefix: ROS-name characters in '/'-separated parts. tf2 refuses an empty id and a leading '/'; blanks,
 # a trailing or doubled '/' and other characters made ids such as 'ad_sim//world' that tools cannot look up.
 FRAME_PREFIX = re.compile(r"[A-Za-z0-9_]+(?:/[A-Za-z0-9_]+)*")
@@ -166,7 +166,11 @@ PARAMETERS = (
     ("device", "cpu", "Warp device: cpu | cuda | cuda:<n>"),
     ("batch", 4, "episodes simulated per batch, ahead of playback"),
     ("loop", False, "start over after the last episode, replaying the episodes simulated if they take at most "
-                    f"{LOOP_MEMORY >> 30} GiB (an episode: 1.2 MB + 0.4 MB per view), else simulating them again"),
+                    "loop_memory_mb, else simulating them again"),
+    # The default keeps the small benchmark's train split (360 episodes, 4 views: 1.03 GB); paper's splits are
+    # simulated again on every pass (docs/simulator.md).
+    ("loop_memory_mb", 1024, "with loop: MiB of the first pass's episodes kept to replay them (an episode: 1.2 MB + "
+                             "0.4 MB per view); a pass that takes more is simulated again each time; 0: never kept"),
     ("topic_prefix", messages.DEFAULT_PREFIX, "prefix of the topics"),
     ("frame_id", messages.DEFAULT_FRAME_PREFIX, "prefix of the frame ids: <frame_id>/world, <frame_id>/view_<k>; "
                                                 "letters, digits and '_' in parts joined by '/' (robot1/ad_sim)"),
@@ -175,19 +179,21 @@ PARAMETERS = (
     ("wait_for_subscribers", 0, "start playing once every topic has this many subscriptions"),
     ("ack_timeout", ACK_TIMEOUT, "s to wait for reliable subscribers' acknowledgements before publishing on without them"),
 )
+# For `ros2 param describe` (ad_sim.dds.declare_parameters); SimNode checks the values itself.
+RANGES = {"loop_memory_mb": (0, 2**63 - 1)}
 
 
 class SimNode(Node):
     def __init__(self, stop: threading.Event):
         super().__init__("ad_sim")
         self.stop = stop
-        declare_parameters(self, PARAMETERS)
+        declare_parameters(self, PARAMETERS, RANGES)
         self.param = lambda name: self.get_parameter(name).value
         self.rate = number(self, "real_time_factor")
         if not 0 <= self.rate < math.inf:
             raise ValueError(f"real_time_factor must be a finite number >= 0 (0 = as fast as possible), got {self.rate}")
         for name, least in (("seed", 0), ("instance_seed", 0), ("batch", 1), ("qos_depth", 1),
-                            ("wait_for_subscribers", 0)):
+                            ("wait_for_subscribers", 0), ("loop_memory_mb", 0)):
             if self.param(name) < least:
                 raise ValueError(f"{name} must be >= {least}, got {self.param(name)}")
         from .instances import MAX_VIEWS  # (the bound of instance files' views too)
@@ -237,13 +243,14 @@ class SimNode(Node):
 
     def simulate_ahead(self) -> None:
         """Worker thread: simulate batches and queue their episodes (None after the last one). With loop, the
-        later passes queue the first pass's episodes again if they were kept (LOOP_MEMORY)."""
+        later passes queue the first pass's episodes again if they were kept (loop_memory_mb)."""
         from .episode import simulate_batch
         from .mpm import Cancelled
 
         batch = self.param("batch")
         views = self.param("views") or None
         loop = self.param("loop")
+        limit = self.param("loop_memory_mb")
         kept, kept_bytes = ([] if loop else None), 0  # the first pass's episodes; None: not kept
         try:
             while not self.stop.is_set():
@@ -257,9 +264,9 @@ class SimNode(Node):
                     if kept is not None:
                         kept += episodes
                         kept_bytes += sum(e.positions.nbytes + e.deformation.nbytes + e.masks.nbytes for e in episodes)
-                        if kept_bytes > LOOP_MEMORY:
-                            self.get_logger().info(f"loop: the episodes of a pass take more than {LOOP_MEMORY >> 30} GiB; "
-                                                   "each pass simulates them again instead of replaying them")
+                        if kept_bytes > limit << 20:
+                            self.get_logger().info(f"loop: the episodes of a pass take more than loop_memory_mb ({limit} "
+                                                   "MiB); each pass simulates them again instead of replaying them")
                             kept = None
                     self._queue(episodes)
                     if self.stop.is_set():
@@ -358,12 +365,12 @@ class SimNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):  # first: from here on a signal stops the node (before: quiet_interrupt)
+        signal.signal(sig, lambda *_: stop.set())
     node_cli("ros2 run ad_sim node", __doc__, PARAMETERS, args)
     use_fast_heartbeat()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     node = None
     try:
         node = SimNode(stop)
