@@ -132,6 +132,23 @@ def test_split_by_size_and_read_back_across_files(tmp_path):
     assert [(t, s) for t, s, _ in read] == [(t, s) for t, s, _ in written]
 
 
+def test_split_files_exceed_max_bag_size_by_at_most_a_small_chunk(tmp_path):
+    """As rosbag2, a file is closed once it has reached max_bag_size. Chunks were 1 MiB whatever the limit, so a 64 KiB
+    limit gave files of over 1 MiB; chunks are now at most an eighth of the limit (or one message, where larger), and
+    every message is read back once, in order."""
+    rng = np.random.default_rng(0)
+    limit = rosbag.MIN_SPLIT_SIZE
+    payloads = [bytes(4) + rng.bytes(int(n)) for n in rng.integers(100, 3000, 300)]  # incompressible
+    path = tmp_path / "bag"
+    with BagWriter(path, max_bag_size=limit) as writer:
+        writer.add_topic("/p", "sensor_msgs/msg/PointCloud2")
+        for stamp, payload in enumerate(payloads):
+            writer.write("/p", stamp, payload)
+    sizes = [f.stat().st_size for f in sorted(path.glob("*.mcap"))]
+    assert len(sizes) >= 5 and max(sizes) <= limit + limit // 8 + 3000 + 4096, sizes  # + a message, the summary
+    assert [m.message for m in BagReader(path, raw=True)] == payloads
+
+
 def test_reader_orders_by_log_time_across_chunks(tmp_path):
     path = tmp_path / "unordered"
     schema = rosbag.load_schema("sensor_msgs/msg/Image")
@@ -721,6 +738,53 @@ def test_a_summary_whose_chunk_index_starts_too_late_is_named(tmp_path, monkeypa
     with pytest.warns(UserWarning, match="read late"):
         rosbag.repair(path, tmp_path / "fixed")
     assert [m.message.data[0] for m in BagReader(tmp_path / "fixed")] == in_order
+
+
+def test_the_log_time_order_check_concerns_only_the_topics_read(tmp_path, monkeypatch):
+    """A summary whose third chunk's index says its messages start at 60 ns, where a message on /b is logged at 5 ns
+    (a writer's error, as above). Reading only /a, whose messages are all in order, was refused all the same (an error
+    naming --recover about a message on /b that the caller had not asked for; recovering warned about it): the check
+    looked at every topic's messages before the topic filter. Now it concerns the messages read: /a alone reads in
+    order, without a word, and /b's messages are not decoded; reading /b (or every topic) is still refused."""
+    from mcap._chunk_builder import ChunkBuilder
+
+    add_message = ChunkBuilder.add_message
+
+    def starting_late(self, message):
+        add_message(self, message)
+        if self.message_start_time == 5:
+            self.message_start_time = 60
+
+    chunks = [[("/a", 0), ("/b", 1), ("/a", 10), ("/a", 20)], [("/a", 30), ("/b", 31), ("/a", 40), ("/a", 50)],
+              [("/b", 5), ("/a", 60), ("/a", 70)], [("/a", 80), ("/b", 81), ("/a", 90)]]
+    monkeypatch.setattr(ChunkBuilder, "add_message", starting_late)
+    path = tmp_path / "bag"
+    with BagWriter(path, chunk_size=1 << 20) as writer:
+        writer.add_topic("/a", "sensor_msgs/msg/Image")
+        writer.add_topic("/b", "sensor_msgs/msg/Image")
+        for chunk in chunks:
+            for topic, stamp in chunk:
+                writer.write(topic, stamp, messages.mask_message(np.full((1, 1), stamp, np.uint8), stamp, "f"))
+            writer.flush()
+    monkeypatch.undo()
+    offset = _chunk_at(path / "bag_0.mcap", 5)
+    decoded = []
+    decode = BagReader._decode
+    monkeypatch.setattr(BagReader, "_decode", lambda self, scan, channel, data: decoded.append(channel.topic)
+                        or decode(self, scan, channel, data))
+    a = sorted(stamp for chunk in chunks for topic, stamp in chunk if topic == "/a")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # not even a warning about /b
+        assert [(m.topic, m.log_time_ns) for m in BagReader(path, topics=["/a"])] == [("/a", s) for s in a]
+        assert [m.message.data[0] for m in BagReader(path, topics=["/a"])] == a
+        assert [m.log_time_ns for m in BagReader(path, topics=["/a"], recover=True)] == a
+    assert set(decoded) == {"/a"}
+    for topics, up_to in ((["/b"], 31), (None, 50)):
+        with pytest.raises(rosbag.BagDamaged, match=rf"the record at byte {offset} holds 1 message\(s\) logged from "
+                                                    rf"5 ns, before messages read already \(up to {up_to} ns\).*--recover"):
+            list(BagReader(path, topics=topics, raw=True))
+    with pytest.warns(UserWarning, match=rf"byte {offset} holds 1 message\(s\) logged from 5 ns.*read late"):
+        assert [m.log_time_ns for m in BagReader(path, topics=["/b"], recover=True)] == [1, 31, 5, 81]
 
 
 def test_a_summary_that_fails_its_crc_is_not_trusted(tmp_path):

@@ -347,6 +347,9 @@ class BagWriter:
     A failed write (a full disk, ...) raises BagWriteError and stops the writer, its files left as a
     killed writer's are: every complete chunk readable; `lost` then counts, per topic, the messages
     written to it that were not yet in a complete chunk (they are not in the topic counts).
+    max_bag_size (bytes; 0: no split) splits the bag as rosbag2 does: a file is closed once it has reached that size,
+    so it exceeds it by up to its last chunk and its summary. Chunks are then at most an eighth of max_bag_size (or one
+    message, where a message is larger), which keeps that small.
     """
 
     def __init__(
@@ -368,7 +371,7 @@ class BagWriter:
             raise BagError(f"max_bag_size {max_bag_size} is too small; use 0 (no split) or >= {MIN_SPLIT_SIZE} bytes")
         self.path.mkdir(parents=True, exist_ok=True)
         self.max_bag_size = int(max_bag_size)
-        self.chunk_size = int(chunk_size)
+        self.chunk_size = min(int(chunk_size), self.max_bag_size // 8) if self.max_bag_size else int(chunk_size)
         self._compression = compressions[compression]
         self.custom_data = dict(custom_data or {})
         self._topics: dict[str, _Topic] = {}
@@ -713,7 +716,8 @@ class BagReader:
     missing files) is passed over with a warning, and the .mcap files beside it are read, as when
     it is missing. If that leaves no message at all, reading (or topics()) raises BagUnreadable.
     A summary whose chunk indexes start later than their chunks' messages (a writer's error) is an error
-    naming --recover, where it would break the order; recovering reads those messages late, with a warning.
+    naming --recover, where it would break the order of the messages read (those of the topics asked for: other topics'
+    messages are neither checked nor decoded); recovering reads those messages late, with a warning.
     raw=True yields the CDR bytes instead of decoded messages.
     `problems` lists the reader's warnings, each once however often the files are scanned. What a walk over a file
     without a summary learns (its topics, its chunks' start times) is kept: topics() then reading walks it twice. It is
@@ -832,9 +836,7 @@ class BagReader:
     # -- one file
 
     def _iter_file(self, file_index: int, scan: _FileScan) -> Iterator[tuple[int, tuple[int, int], str, Any]]:
-        for log_time, order, channel, data in self._scan_file(scan):
-            if self.topic_filter is not None and channel.topic not in self.topic_filter:
-                continue
+        for log_time, order, channel, data in self._scan_file(scan):  # of the topics asked for only
             if self.raw:
                 message = data
             else:
@@ -971,7 +973,10 @@ class BagReader:
 
     def _scan_data(self, scan: _FileScan, data, chunk_indexes: list[ChunkIndex] | None
                    ) -> Iterator[tuple[int, int, Channel, bytes]]:
-        """Messages of the data section as (log_time, order, channel, data), in log-time order (ties in file order).
+        """Messages of the data section on the topics asked for (`topic_filter`) as (log_time, order, channel, data), in
+        log-time order (ties in file order). The other topics' messages are dropped as each record is read: they are
+        neither held nor decoded, and the order check below (a chunk index that starts too late) concerns only the
+        messages read, as their order is all that the caller sees.
 
         Each message is held only until no record after it can hold an earlier one, so that a file is not held in
         memory whole (a killed recorder's can be larger than memory): that takes each record's earliest log time, from
@@ -986,7 +991,10 @@ class BagReader:
         pending: list[tuple[int, int, Channel, bytes]] = []
         order = 0
         released = None  # log time of the last message released
+        wanted = self.topic_filter
         for pos, _, messages in self._scan_records(scan, data, chunk_indexes):
+            if wanted is not None:
+                messages = [(m, channel) for m, channel in messages if channel.topic in wanted]
             # Only a summary's chunk index can start too late (a writer's error): without one, starts are the messages'.
             if early := [m.log_time for m, _ in messages if released is not None and m.log_time < released]:
                 cause = (f"its chunk index says its messages start at {starts[pos]} ns" if pos in starts
