@@ -31,20 +31,26 @@ def instance_dict(index: int, material: str, parameters: dict, stamp_ns: int) ->
     }
 
 
-def write_test_bag(path: Path, episodes=EPISODES, chunk_size: int = 1024 * 1024, edit_mask=None) -> Path:
+def write_test_bag(path: Path, episodes=EPISODES, chunk_size: int = 1024 * 1024, edit_mask=None,
+                   frame_stamp=messages.frame_stamp, ground_truth: bool = True) -> Path:
     """One view, falling-disc masks at the simulator's stamps, ground truth per episode.
 
     ``edit_mask(episode, frame, message)``, if given, returns the mask message to record instead
-    (e.g. a damaged frame), or None to leave the frame out."""
+    (e.g. a damaged frame), or None to leave the frame out. ``frame_stamp(episode, frame)``: the stamp
+    (ns; header and log time) of each mask frame, the simulator's by default (frame 0's is the episode's
+    ground truth's). ``ground_truth=False``: the masks only (a recording without the instance topic)."""
     instance_topic, mask_topic = messages.instance_topic(), messages.mask_topic(0)
     with BagWriter(path, chunk_size=chunk_size) as writer:
-        writer.add_topic(instance_topic, messages.INSTANCE_TYPE, [qos_profile(**messages.topic_qos(instance_topic))])
+        if ground_truth:
+            writer.add_topic(instance_topic, messages.INSTANCE_TYPE,
+                             [qos_profile(**messages.topic_qos(instance_topic))])
         writer.add_topic(mask_topic, messages.IMAGE_TYPE, [qos_profile(**messages.topic_qos(mask_topic))])
         for index, (material, parameters) in enumerate(episodes):
-            start = messages.frame_stamp(index, 0)
-            writer.write(instance_topic, start, instance_dict(index, material, parameters, start))
+            start = frame_stamp(index, 0)
+            if ground_truth:
+                writer.write(instance_topic, start, instance_dict(index, material, parameters, start))
             for frame, mask in enumerate(falling_masks(seed=100 + index)):
-                stamp = messages.frame_stamp(index, frame)
+                stamp = frame_stamp(index, frame)
                 message = messages.mask_message(mask, stamp, "ad_sim/view_0")
                 if edit_mask is not None and (message := edit_mask(index, frame, message)) is None:
                     continue

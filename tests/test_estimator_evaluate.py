@@ -12,7 +12,7 @@ import pytest
 from mcap.reader import make_reader
 
 from ad_estimator import estimate, evaluate
-from ad_estimator.metrics import family_ranges
+from ad_estimator.metrics import FAMILIES, family_ranges, table_labels
 from ad_estimator.model import EstimatorModel
 from ad_estimator.window import FrameWindow
 from ad_sim import messages
@@ -331,6 +331,60 @@ def test_an_episode_cut_short_is_left_out_of_the_rows_it_cannot_fill(setup, tmp_
     assert "Clips: 2;" in (tmp_path / "out" / "report.md").read_text()
 
 
+def burst_stamp(index: int, frame: int) -> int:
+    """A camera that sends frames 10-17 of each episode 4 times as fast as the model's interval and the rest
+    further apart (in intervals from the start: 0..9, 9.25..11, then 14, 17, .., 32): the first 18 frames span
+    12 frame slots, the first 10 fill 10, and the first 25 reach past the last slot (their window is complete)."""
+    at = frame if frame < 10 else 9 + 0.25 * (frame - 9) if frame < 18 else 11 + 3 * (frame - 17)
+    return messages.frame_stamp(index, 0) + round(at * 25_000_000)
+
+
+def test_a_temporal_ood_row_that_every_episode_was_left_out_of_stays_as_no_clips(setup, tmp_path, capsys):
+    """A row that no episode fills, which no simulator bag gives (its frames are on the model's interval): here
+    every episode is left out of the K = 18 row (its first 18 frames fill 12 slots, burst_stamp) and kept in the
+    K = 25 and 10 rows. The 18 row stays, in metrics.json (n 0) and in both of report.md's tables and the output as "no
+    clips" (it was dropped: the report read as if 18 had not been asked for); the other rows are those of a
+    run without it. `python -m training report` rebuilds the same report from the predictions.json."""
+    from training.__main__ import main as training_main
+
+    model, _ = setup
+    bag = write_test_bag(tmp_path / "bag", frame_stamp=burst_stamp)
+    with pytest.warns(UserWarning) as caught:
+        assert run_main(model, bag, tmp_path / "out", "--frames", "18", "10") == 0
+    assert [str(w.message).split(";")[0] for w in caught] == [
+        f"{bag}: episode test-disc-{material}-000{i}: left out of the K = 18 row(s): fewer frame slots than K (the "
+        "K = 18 window holds 12" for i, (material, _) in enumerate(EPISODES)]
+    empty = "| 18 | " + " | ".join(["no clips"] * len(table_labels())) + " |"
+    out = capsys.readouterr().out
+    assert empty in out and "episodes left out of the rows K = 18: 3" in out, out
+    saved = json.loads((tmp_path / "out" / "metrics.json").read_text())["frames"]
+    assert {k: v["n"] for k, v in saved.items()} == {"25": 3, "18": 0, "10": 3}
+    assert {family: v["n"] for family, v in saved["18"]["families"].items()} == dict.fromkeys(FAMILIES, 0)
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert report.count(empty) == 2, report  # both conventions' tables
+    assert "Clips: 3; frames per clip: 25. Rows with another number of clips than the 25-frame row's: " \
+           "18 frames: no clips." in report, report
+    predictions = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert predictions["frames"]["18"] == [] and [p["slots"] for p in predictions["frames"]["10"]] == [10, 10, 10]
+    assert [e["reason"] for e in predictions["left_out"]["18"]] == ["its window holds 12 of 18 frame slots"] * 3
+    assert predictions["left_out"]["25"] == predictions["left_out"]["10"] == []
+    # The other rows are as without the 18 row.
+    assert run_main(model, bag, tmp_path / "without", "--frames", "10") == 0
+    capsys.readouterr()
+    without = json.loads((tmp_path / "without" / "metrics.json").read_text())["frames"]
+    assert without == {k: v for k, v in saved.items() if k != "18"}
+    rows = [line for line in report.splitlines() if line.startswith(("| 25 |", "| 10 |"))]
+    assert len(rows) == 4 and rows == [line for line in (tmp_path / "without" / "report.md").read_text().splitlines()
+                                       if line.startswith(("| 25 |", "| 10 |"))]
+    # The training side's report of that predictions.json keeps the row too (--frames 10 is no temporal-OOD row of
+    # its printed table, which shows the full clip and K = 24, 22, 18, 15 only).
+    assert training_main(["report", "--predictions", str(tmp_path / "out" / "predictions.json"),
+                          "--out", str(tmp_path / "report")]) == 0
+    assert empty in capsys.readouterr().out
+    assert (tmp_path / "report" / "report.md").read_text().count(empty) == 2
+    assert json.loads((tmp_path / "report" / "metrics.json").read_text())["frames"] == saved
+
+
 def test_a_topic_that_is_not_an_image_is_named(setup, tmp_path, capsys):
     model, bag = setup
     assert run_main(model, bag, tmp_path / "out", "--topic", "/ad_sim/instance") == 1
@@ -443,3 +497,118 @@ def test_episodes_of_two_simulator_runs_in_one_bag_are_left_out_saying_so(tmp_pa
         kept = [(instance.seed, len(frames)) for instance, frames in evaluate.episode_frames(tmp_path / "two_runs")]
     assert kept == [(2, 25)]
     assert len([w for w in caught if "record each run into its own bag" in str(w.message)]) == 2
+
+
+def test_an_instance_topic_of_another_type_is_a_one_line_error(setup, tmp_path, capsys):
+    """A bag whose /ad_sim/instance carries something other than the simulator's ground truth: a one-line error
+    naming the topic and type (it was an AttributeError traceback: "'Image' object has no attribute 'episode_id'")."""
+    from ad_sim.rosbag import BagWriter, qos_profile
+
+    model, _ = setup
+    instance_topic, mask_topic = messages.instance_topic(), messages.mask_topic(0)
+    with BagWriter(tmp_path / "bag") as writer:
+        for topic in (instance_topic, mask_topic):
+            writer.add_topic(topic, messages.IMAGE_TYPE, [qos_profile(**messages.topic_qos(topic))])
+        for frame, mask in enumerate(falling_masks(seed=100)):
+            stamp = messages.frame_stamp(0, frame)
+            for topic in (instance_topic, mask_topic) if frame == 0 else (mask_topic,):
+                writer.write(topic, stamp, messages.mask_message(mask, stamp, "ad_sim/view_0"))
+    assert run_main(model, tmp_path / "bag", tmp_path / "out") == 1
+    assert capsys.readouterr().err == (
+        f"evaluate: topic /ad_sim/instance in {tmp_path / 'bag'} carries sensor_msgs/msg/Image, not the simulator's "
+        "ground truth ad_msgs/msg/SimInstance, which evaluate splits episodes at and scores them against\n")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_bag_without_ground_truth_is_said_and_counted(setup, tmp_path, capsys):
+    """A bag of masks without the simulator's ground truth gives no episode. Beside other bags, it was left out
+    without a word (the report read as if it held nothing); alone, the error blamed the mask topic ("no episode
+    with 25 frames on /ad_sim/view_0/mask"), which has them. Now it is warned about, counted in the output's and
+    report.md's input problems and listed in predictions.json; alone, the error says what is missing."""
+    model, good = setup
+    masks_only = write_test_bag(tmp_path / "bags" / "masks_only", ground_truth=False)
+    with pytest.warns(UserWarning) as caught:
+        assert run_main(model, masks_only, tmp_path / "alone") == 1
+    assert [str(w.message) for w in caught] == [f"{masks_only}: no ground truth (ad_msgs/msg/SimInstance on "
+                                                "/ad_sim/instance), so no episode: nothing in it is scored"]
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(
+        f"evaluate: no ground truth (ad_msgs/msg/SimInstance on /ad_sim/instance) in {[str(masks_only)]}, so no "
+        "episode to score: ") and \
+        "`ros2 run ad_estimator estimate BAG --topic TOPIC`" in err, err
+    shutil.copytree(good, tmp_path / "bags" / "sim")
+    with pytest.warns(UserWarning, match="masks_only: no ground truth"):
+        assert run_main(model, tmp_path / "bags", tmp_path / "out") == 0
+    said = "1 bag(s) without ground truth on /ad_sim/instance"
+    assert f"input problems: {said} (see the warnings above)" in capsys.readouterr().out
+    assert f"Input problems: {said} (listed in predictions.json)" in (tmp_path / "out" / "report.md").read_text()
+    predictions = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert predictions["without_ground_truth"] == [str(masks_only)] and len(predictions["frames"]["25"]) == 3
+
+
+def test_a_copy_of_a_bag_is_scored_once(setup, tmp_path, capsys):
+    """Bags holding the same episodes (id and seed; say, a backup copy beside the bag under --bags): each
+    episode is scored once, the copies left out with one warning a bag, and counted (they were all scored
+    again: every n doubled, and a copied bag's episodes weighed twice as much as the others'). `python -m
+    training evaluate` reads such a copy once too."""
+    model, good = setup
+    for name in ("a", "b"):
+        shutil.copytree(good, tmp_path / "bags" / name)
+    with pytest.warns(UserWarning) as caught:
+        assert run_main(model, tmp_path / "bags", tmp_path / "out", "--frames", "18") == 0
+    first, copy = tmp_path / "bags" / "a", tmp_path / "bags" / "b"
+    assert [str(w.message) for w in caught] == [f"{copy}: 3 episode(s) left out of every row: the same episode (id "
+                                                f"and seed) was read from {first} (a copy of a recording is scored "
+                                                "once)"]
+    assert "episodes left out of the rows K = 25: 3, K = 18: 3" in capsys.readouterr().out
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())["frames"]
+    assert run_main(model, good, tmp_path / "one") == 0
+    assert metrics["25"] == json.loads((tmp_path / "one" / "metrics.json").read_text())["frames"]["25"]
+    saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert {p["bag"] for p in saved["frames"]["25"]} == {str(first)}
+    assert [(e["bag"], e["reason"]) for e in saved["left_out"]["18"]] == \
+        [(str(copy), f"the same episode (id and seed) was read from {first}")] * 3
+
+
+@pytest.mark.parametrize("episode, reason", [
+    (("plasticine", {"youngs_modulus": 1.0e5, "poissons_ratio": 0.4}),
+     "its ground truth lacks yield_stress, which the metrics score for plasticine (it gives youngs_modulus, "
+     "poissons_ratio)"),
+    (("jelly", {"youngs_modulus": float("nan"), "poissons_ratio": 0.3}),
+     "its ground truth youngs_modulus nan is not a positive number"),
+    (("jelly", {"youngs_modulus": -2.0e5, "poissons_ratio": 0.3}),
+     "its ground truth youngs_modulus -200000 is not a positive number"),
+    (("sand", {"youngs_modulus": 1.0e5, "poissons_ratio": 0.3, "friction_angle": float("inf")}),
+     "its ground truth friction_angle inf is not a finite number"),
+])
+def test_ground_truth_the_metrics_cannot_score_is_left_out_saying_so(setup, tmp_path, capsys, episode, reason):
+    """An episode whose ground truth lacks a parameter the metrics score for its family, or gives one as NaN, inf or
+    (scored in log space) <= 0: left out of every row with a warning naming it. It was scored without a word, and
+    made RegL1 over all clips n/a (a missing or NaN value) or a number of no meaning (log of a negative E), or, for
+    an infinite value, ended the run with a traceback when predictions.json was written (inf is no JSON)."""
+    model, _ = setup
+    bag = write_test_bag(tmp_path / "bag", episodes=[*EPISODES, episode])
+    name = f"test-disc-{episode[0]}-0003"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert run_main(model, bag, tmp_path / "out") == 0
+    assert [str(w.message) for w in caught] == [f"{bag}: episode {name}: left out of every row: {reason}"]
+    assert "episodes left out of the rows K = 25: 1" in capsys.readouterr().out
+    saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert [p["true_material"] for p in saved["frames"]["25"]] == [m for m, _ in EPISODES]
+    assert saved["left_out"]["25"] == [{"bag": str(bag), "episode_id": name, "reason": reason}]
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())["frames"]["25"]
+    assert metrics["n"] == 3 and math.isfinite(metrics["regl1"])
+
+
+def test_frames_alone_for_a_model_of_fewer_frames_gives_the_rows_it_reaches(tmp_path, capsys):
+    """`--frames` with no value for a model of 20 frames: the temporal-OOD rows below 20 (18, 15), as `python -m
+    training evaluate` does. It was refused, naming K values the user had not given ("--frames [24, 22]: each K
+    must be in 1..20"); K values given are still checked."""
+    model = build_streaming_model(tmp_path, name="m20", frame_count=20)
+    bag = write_test_bag(tmp_path / "bag")
+    assert run_main(model, bag, tmp_path / "out", "--frames") == 0
+    assert set(json.loads((tmp_path / "out" / "metrics.json").read_text())["frames"]) == {"20", "18", "15"}
+    capsys.readouterr()
+    assert run_main(model, bag, tmp_path / "out", "--frames", "22") == 1
+    assert capsys.readouterr().err == "evaluate: --frames [22]: each K must be in 1..20\n"

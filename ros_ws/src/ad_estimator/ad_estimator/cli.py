@@ -138,7 +138,10 @@ def interruptible(prog: str):
 
                 # A bar the Ctrl-C left open (one made but not yet entered as a context manager) ends its line first.
                 for bar in list(tqdm._instances):
+                    drawn_in_init = getattr(bar, "sp", None) and not hasattr(bar, "last_print_t")
                     bar.close()
+                    if drawn_in_init:  # interrupted in tqdm's __init__ after its first draw: close() ends no line
+                        bar.fp.write("\n")
                 print(f"{prog}: interrupted; nothing was written", file=sys.stderr)
                 return 130
         return run

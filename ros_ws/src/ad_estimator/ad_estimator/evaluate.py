@@ -6,13 +6,16 @@ ends), then model.predict. So the per-episode predictions equal what the live no
 the same frames. As in the node, a frame images.py rejects is skipped (with a warning, and counted)
 and an image size change restarts the window. An episode whose window holds fewer than K frame
 slots (cut short, or restarted) is left out of the K row, and one without a usable mask frame out
-of every row, with a warning. Metrics (SPEC 8) come
+of every row, with a warning; so is one whose ground truth the metrics cannot score (unscorable_ground_truth)
+and one read before from another bag (the same id and seed: a copy of a recording, scored once). A bag
+without ground truth gives no episode (warned, and counted). Metrics (SPEC 8) come
 from ad_estimator.metrics; --frames K adds the temporal out-of-distribution rows (only the first K
 frames observed). Needs no ROS runtime.
 """
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import tempfile
@@ -33,6 +36,7 @@ from ad_sim import messages
 from ad_sim.rosbag import BagError, BagReader, distinct_episodes, group_episodes, one_line_warnings
 
 INSTANCE_TOPIC = messages.instance_topic()
+INSTANCE_TYPE = messages.INSTANCE_TYPE
 MASK_TOPIC = DEFAULT_INPUT_TOPIC  # the node's input: the simulator's first camera
 IMAGE_TYPE = messages.IMAGE_TYPE
 
@@ -67,12 +71,16 @@ class Evaluation:
     source_problems: list[str] = field(default_factory=list)
     skipped_frames: list[dict] = field(default_factory=list)  # bag, episode_id, stamp_ns, reason
     left_out: dict[int, list[dict]] = field(default_factory=dict)  # per K: bag, episode_id, reason
+    # bags without a ground truth message on INSTANCE_TOPIC: none of their frames is scored
+    without_ground_truth: list[str] = field(default_factory=list)
 
     def problems(self) -> str:
         """One line on what was skipped or left out ('' when nothing was)."""
         parts = []
         if self.source_problems:
             parts.append(f"{len(self.source_problems)} problem(s) reading the bags' files")
+        if self.without_ground_truth:
+            parts.append(f"{len(self.without_ground_truth)} bag(s) without ground truth on {INSTANCE_TOPIC}")
         if self.skipped_frames:
             parts.append(f"{len(self.skipped_frames)} mask frame(s) skipped, as the node rejects them")
         if rows := [f"K = {k}: {len(v)}" for k, v in self.left_out.items() if v]:
@@ -138,20 +146,36 @@ def image_topics(topics: dict[str, str]) -> list[str]:
 
 
 def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = False,
-                   problems: list[str] | None = None):
+                   problems: list[str] | None = None, without_ground_truth: list[str] | None = None):
     """(instance, [(stamp_ns, Image)]) per episode of the bag, in order; stamp_ns is None for a frame
     whose stamp is malformed (the node rejects it; accepted_frames says why). `recover`: read a truncated
     or damaged file (a killed recorder) up to its last complete chunk, with a warning. `problems`,
-    if given, gets the reader's warnings (BagReader.problems) once the bag is read."""
+    if given, gets the reader's warnings (BagReader.problems) once the bag is read; `without_ground_truth`
+    the bag, if it holds no ground truth message (so no episode)."""
     reader = BagReader(bag, topics=[INSTANCE_TOPIC, mask_topic], recover=recover)
-    check_image_topic(reader.topics(), mask_topic, bag)
+    topics = reader.topics()
+    check_image_topic(topics, mask_topic, bag)
+    if (carried := topics.get(INSTANCE_TOPIC, INSTANCE_TYPE)) != INSTANCE_TYPE:  # its messages have no episode_id
+        raise BagError(f"topic {INSTANCE_TOPIC} in {bag} carries {carried}, not the simulator's ground truth "
+                       f"{INSTANCE_TYPE}, which evaluate splits episodes at and scores them against")
+
     def collided(_, reason: str) -> None:  # their ground truth and frames cannot be paired
         warnings.warn(f"{bag}: {reason}")
 
-    for episode in distinct_episodes(group_episodes(reader, INSTANCE_TOPIC), collided):
+    instances = 0
+
+    def counted(episodes):
+        nonlocal instances
+        for episode in episodes:
+            instances += 1
+            yield episode
+
+    for episode in distinct_episodes(counted(group_episodes(reader, INSTANCE_TOPIC)), collided):
         yield episode.instance, [(_stamp_or_none(m.header.stamp), m) for _, m in episode.messages.get(mask_topic, [])]
     if problems is not None:
         problems += reader.problems
+    if without_ground_truth is not None and not instances:
+        without_ground_truth.append(str(bag))
 
 
 def _stamp_or_none(stamp) -> int | None:
@@ -223,18 +247,50 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
     """Predictions per number of observed frames, every episode of every bag (see score_episode)."""
     check_scorable(model)
     result = Evaluation({k: [] for k in frame_counts}, left_out={k: [] for k in frame_counts})
+    read_from: dict[tuple[str, int], Path] = {}  # (episode_id, seed) -> the bag it was first read from
     with tqdm(desc="episodes", unit="ep", disable=None if progress else True, file=sys.stderr) as bar:
         for bag in bags:
             before = len(result.left_out[frame_counts[0]])
-            for instance, frames in episode_frames(bag, mask_topic, recover, result.source_problems):
-                score_episode(model, bag, instance, frames, frame_counts, result)
+            copies: dict[Path, int] = {}  # episodes read before, per bag they were read from
+            for instance, frames in episode_frames(bag, mask_topic, recover, result.source_problems,
+                                                   result.without_ground_truth):
                 bar.update()
+                if (first := read_from.setdefault((instance.episode_id, int(instance.seed)), bag)) != bag:
+                    copies[first] = copies.get(first, 0) + 1  # a copy of a recording: it would count twice
+                    for k in frame_counts:
+                        result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id,
+                                                   "reason": f"{COPY} {first}"})
+                    continue
+                score_episode(model, bag, instance, frames, frame_counts, result)
             if silent := sum(e["reason"] == NO_FRAME for e in result.left_out[frame_counts[0]][before:]):
                 warnings.warn(f"{bag}: {silent} episode(s) left out of every row: {NO_FRAME}")  # one line a bag
+            for first, count in copies.items():  # one line a bag, as a whole copied bag would give one an episode
+                warnings.warn(f"{bag}: {count} episode(s) left out of every row: {COPY} {first} (a copy of a "
+                              "recording is scored once)")
+            if str(bag) in result.without_ground_truth:
+                warnings.warn(f"{bag}: no ground truth ({INSTANCE_TYPE} on {INSTANCE_TOPIC}), so no episode: "
+                              "nothing in it is scored")
     return result
 
 
 NO_FRAME = "it has no mask frame on the topic"
+COPY = "the same episode (id and seed) was read from"
+
+
+def unscorable_ground_truth(instance) -> str:
+    """Why the metrics cannot score against the episode's ground truth ('' when they can): a material they do not
+    know, or a parameter they score for it missing, not finite, or not positive where scored in log space (one
+    such episode made a column, and RegL1 over all clips, n/a or a number of no meaning)."""
+    if instance.material not in metrics.FAMILIES:
+        return f"its material {instance.material!r} is none of {', '.join(metrics.FAMILIES)}"
+    given = dict(zip(instance.parameter_names, instance.parameters))
+    for name, (_, _, scale) in metrics.family_ranges()[instance.material].items():
+        if name not in given:
+            return (f"its ground truth lacks {name}, which the metrics score for {instance.material} (it gives "
+                    f"{', '.join(instance.parameter_names) or 'no parameter'})")
+        if not (math.isfinite(value := float(given[name])) and (value > 0 or scale != "log")):
+            return f"its ground truth {name} {value:g} is not a {'positive' if scale == 'log' else 'finite'} number"
+    return ""
 
 
 def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_counts: list[int],
@@ -243,8 +299,7 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
     skipped; an episode whose window holds fewer than K frame slots is left out of the K row.
     Each of these is noted in `result` and warned about, naming the bag and episode."""
     where = f"{bag}: episode {instance.episode_id}"
-    if instance.material not in metrics.FAMILIES:  # no ground truth the metrics can score
-        reason = f"its material {instance.material!r} is none of {', '.join(metrics.FAMILIES)}"
+    if reason := unscorable_ground_truth(instance):  # no ground truth the metrics can score
         warnings.warn(f"{where}: left out of every row: {reason}")
         for k in frame_counts:
             result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id, "reason": reason})
@@ -321,6 +376,7 @@ def write_report(folder: Path, by_frames: dict, title: str, evaluation: Evaluati
          "parameter_names": list(model.info.parameter_names),
          "frames": {str(k): [vars(p) for p in v] for k, v in evaluation.predictions.items()},
          "source_problems": evaluation.source_problems, "skipped_frames": evaluation.skipped_frames,
+         "without_ground_truth": evaluation.without_ground_truth,
          "left_out": {str(k): v for k, v in evaluation.left_out.items()}}, indent=1))
     return report
 
@@ -340,7 +396,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--frames", action=metrics.FrameCounts, nargs="*", default=None, metavar="K",
                         help=f"also evaluate with only the first K frames observed (temporal OOD), e.g. "
                              f"--frames 24 18 or --frames 24,18; with no value: "
-                             f"{' '.join(map(str, metrics.TEMPORAL_OOD_FRAMES))}")
+                             f"{' '.join(map(str, metrics.TEMPORAL_OOD_FRAMES))} (those below the model's frame "
+                             "count)")
     parser.add_argument("--topic", type=topic, default=MASK_TOPIC, help="mask topic to evaluate (one camera; sensor_msgs/Image)")
     parser.add_argument("--out", type=Path, default=None,
                         help="report folder (default reports/evaluate/<model id>)")
@@ -359,7 +416,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         model = EstimatorModel.load(args.model, threads=args.threads)
         count = model.info.frame_count
-        extra = metrics.TEMPORAL_OOD_FRAMES if args.frames == [] else (args.frames or [])
+        # --frames alone: the temporal-OOD rows the model's frames reach (for a model of 20 frames, 18 and 15)
+        extra = [k for k in metrics.TEMPORAL_OOD_FRAMES if k < count] if args.frames == [] else (args.frames or [])
         if bad := [k for k in extra if not 1 <= k <= count]:
             raise ValueError(f"--frames {bad}: each K must be in 1..{count}")
         counts = sorted({count, *extra}, reverse=True)
@@ -371,6 +429,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 1
     results, problems = evaluation.predictions, evaluation.problems()
+    if len(evaluation.without_ground_truth) == len(bags):
+        print(f"evaluate: no ground truth ({INSTANCE_TYPE} on {INSTANCE_TOPIC}) in {[str(b) for b in args.bags]}, "
+              "so no episode to score: evaluate scores recordings of the simulator, whose ground truth splits them "
+              "into episodes and is what they are scored against; for bags without it, `ros2 run ad_estimator "
+              "estimate BAG --topic TOPIC` writes the node's estimates as a CSV", file=sys.stderr)
+        return 1
     if not results[count]:
         with warnings.catch_warnings():  # the bags' own problems were said while reading them
             warnings.simplefilter("ignore")
