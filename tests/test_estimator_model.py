@@ -666,3 +666,100 @@ def test_no_estimate_is_made_of_outputs_that_are_not_finite(tmp_path):
     with pytest.raises(ValueError, match=r"m.onnx: the model's outputs are not finite \(NaN or inf\) for these 25 "
                                          r"frames, so there is no estimate"):
         model.predict(np.stack([model.encode(m) for m in masks]), np.ones(25, bool))
+
+
+# --------------------------------------------------------------------------- mutation-testing audit
+
+
+def test_an_estimate_reads_the_head_outputs_as_the_metadata_contract_says(tmp_path):
+    """With all-zero features the test model's head gives its bias: logits, params (through a sigmoid) and
+    params_logvar are known numbers, and the estimate follows from them by hand: probabilities the softmax
+    of the logits, each parameter denormalised over its range (log for E and yield), each sigma
+    exp(logvar / 2) in normalised units, taken to SI by the range's derivative (docs/architecture.md)."""
+    from onnx import numpy_helper
+
+    path = build_clip_model(tmp_path / "m.onnx")
+    bias = next(numpy_helper.to_array(t) for t in onnx.load(str(path)).graph.initializer
+                if t.name == "b_head").astype(np.float64)
+    logits, u, logvar = bias[:3], 1 / (1 + np.exp(-bias[3:7])), bias[7:11]
+    est = EstimatorModel.load(path).predict(np.zeros((5, 32, 32), np.float32), np.ones(5, bool))
+    expected_p = np.exp(logits) / np.exp(logits).sum()
+    np.testing.assert_allclose(est.probabilities, expected_p, rtol=1e-5)
+    sigma_u = np.exp(logvar / 2)  # a standard deviation: the square root of the variance
+    e = 1.5e4 * 100.0 ** u[0]
+    nu = 0.2 + 0.28 * u[1]
+    y = 500.0 * 50.0 ** u[2]
+    phi = math.radians(10) + math.radians(35) * u[3]
+    np.testing.assert_allclose(est.raw_parameters, [e, nu, y, phi], rtol=1e-5)
+    np.testing.assert_allclose(est.raw_uncertainties, [e * math.log(100.0) * sigma_u[0], 0.28 * sigma_u[1],
+                                                       y * math.log(50.0) * sigma_u[2],
+                                                       math.radians(35) * sigma_u[3]], rtol=1e-4)
+
+
+def test_denormalise_clamps_outputs_outside_the_range_to_its_ends():
+    from ad_estimator.model import ParameterRange
+
+    for rng in (ParameterRange(1.5e4, 1.5e6, "log"), ParameterRange(0.2, 0.48, "linear")):
+        assert rng.denormalise(np.array(1.3)) == pytest.approx(rng.high, rel=1e-12)
+        assert rng.denormalise(np.array(-0.2)) == pytest.approx(rng.low, rel=1e-12)
+    assert ParameterRange(1.5e4, 1.5e6, "log").denormalise(np.array(0.5)) == pytest.approx(1.5e5)
+
+
+def test_softmax_of_large_logits_is_finite():
+    from ad_estimator.model import softmax
+
+    np.testing.assert_allclose(softmax(np.array([1000.0, 0.0, -1000.0])), [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(softmax(np.array([801.0, 800.0])), [math.e / (1 + math.e), 1 / (1 + math.e)])
+
+
+@pytest.mark.parametrize("spec", [[0.0, 1.0, "log"], [-1.0, 1.0, "log"], [1.0, 1.0, "linear"], [2.0, 1.0, "linear"],
+                                  [1.0, 2.0, "ln"]])
+def test_a_parameter_range_without_a_scale_it_can_have_is_refused(spec):
+    import json
+    from pathlib import Path
+
+    from ad_estimator.model import parse_metadata
+    from estimator_models import PARAMETER_RANGES, metadata
+
+    meta = metadata("clip", "m", (32, 32), 25, None)
+    meta["ad.parameter_ranges"] = json.dumps({**PARAMETER_RANGES, "yield_stress": spec})
+    with pytest.raises(ModelError, match="bad range for yield_stress"):
+        parse_metadata(meta, Path("m.onnx"))
+
+
+def test_object_extent_counts_whole_simulator_pixels():
+    mask = np.zeros((128, 128), np.uint8)
+    mask[10:50, 20:40] = 255  # 40 x 20 simulator pixels
+    assert object_extent(mask) == 40 / 128
+    dot = np.zeros((128, 128), np.uint8)
+    dot[64, 64] = 255
+    assert object_extent(dot) == 1 / 128
+    # A coverage (grey) mask of the simulator's size: its edge pixels count from half covered on.
+    grey = mask.copy()
+    grey[9, 20:40] = grey[50, 20:40] = 100  # under half: not the object
+    assert object_extent(grey) == 40 / 128
+    grey[9, 20:40] = grey[50, 20:40] = 200
+    assert object_extent(grey) == 42 / 128
+
+
+def test_unobserved_slots_reach_the_graph_as_zeros(tmp_path):
+    """The head sees zeros, not the caller's leftovers, at invalid slots and past the slots given."""
+    model = EstimatorModel.load(build_clip_model(tmp_path / "m.onnx"))
+    session, feeds = model._session, []
+
+    class Recording:
+        def run(self, names, given, options=None):
+            feeds.append(given)
+            return session.run(names, given, options)
+
+    model._session = Recording()
+    features = np.full((12, 32, 32), 0.5, np.float32)
+    valid = np.ones(12, bool)
+    valid[[3, 7]] = False
+    features[[3, 7]] = 7.0
+    model.predict(features, valid)
+    (fed,) = feeds
+    assert fed["masks"].shape == (1, 25, 32, 32) and fed["valid"].shape == (1, 25)
+    np.testing.assert_array_equal(fed["valid"][0], np.r_[valid, np.zeros(13, bool)].astype(np.float32))
+    assert (fed["masks"][0, [3, 7]] == 0).all() and (fed["masks"][0, 12:] == 0).all()
+    assert (fed["masks"][0, valid.nonzero()[0]] == 0.5).all()

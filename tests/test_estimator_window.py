@@ -787,3 +787,40 @@ def test_evaluate_makes_the_node_windows_decisions_for_an_episode_in_stamp_order
     evaluate.predict_episode(model, "bag", instance, [(s, None) for s in gap], 30,
                              masks=[np.full(SIZE, i) for i in range(30)])
     assert model.calls[0][:10] == tuple(range(10))  # the node's window would have restarted at frame 10
+
+
+# --------------------------------------------------------------------------- mutation-testing audit
+
+
+def test_header_stamps_convert_to_nanoseconds_and_back_exactly():
+    from ad_estimator.window import ns_to_stamp, stamp_text, stamp_to_ns
+
+    assert stamp_to_ns(1, 999_999_999) == 1_999_999_999
+    assert stamp_to_ns(1_700_000_000, 25_000_000) == 1_700_000_000_025_000_000
+    for nanosec in (1_000_000_000, 1_500_000_000, -1):  # no time: read as is it shifted the frame by seconds
+        with pytest.raises(ValueError, match="not below 1e9"):
+            stamp_to_ns(1, nanosec)
+    assert ns_to_stamp(1_999_999_999) == (1, 999_999_999)
+    assert ns_to_stamp(-1) == (-1, 999_999_999)  # a header's nanosec is never negative
+    for ns in (0, 1, 999_999_999, 1_000_000_000, 1_700_000_000_025_000_000):
+        assert stamp_to_ns(*ns_to_stamp(ns)) == ns
+    assert stamp_text(1_000_000_005) == "1.000000005"
+    assert stamp_text(2**62 + 1) == "4611686018.427387905"  # exact, unlike a float of seconds
+
+
+def test_parameter_checks_take_the_ends_of_each_range_and_refuse_past_them():
+    from ad_estimator.parameters import check_parameters
+
+    check_parameters({"mask_threshold": 0, "idle_flush": 0.0, "diagnostics_period": 0.01, "queue_size": 1000,
+                      "threads": 1, "min_frames": 1, "every_n": 1})
+    check_parameters({"mask_threshold": 254})
+    for values, message in [({"mask_threshold": 255}, "mask_threshold is a pixel value in 0..254"),  # nothing is > 255
+                            ({"mask_threshold": -1}, "mask_threshold"),
+                            ({"min_frames": 0}, "min_frames must be positive"),
+                            ({"every_n": 0}, "every_n must be positive"),
+                            ({"queue_size": 1001}, "queue_size must be at most 1000"),
+                            ({"idle_flush": -0.1}, "idle_flush is seconds"),
+                            ({"idle_flush": math.nan}, "idle_flush is seconds"),
+                            ({"diagnostics_period": 0.009}, "diagnostics_period is seconds")]:
+        with pytest.raises(ValueError, match=message):
+            check_parameters(values)

@@ -363,3 +363,73 @@ def test_written_ids_that_the_loader_reads_as_numbers_are_quoted(tmp_path):
     path = tmp_path / "ids.yaml"
     write_instance_file(originals, path)
     assert load_instance_file(path) == originals
+
+
+# ------------------------------------------------------------------------- mutation-testing audit
+
+
+def test_benchmark_instances_are_those_the_committed_sample_bag_recorded():
+    """bags/samples/unseen-masks-0of1 is `generate --size tiny --split unseen` (bags/samples/make.sh): its
+    recorded instances pin down what a benchmark is (seeds, parameters, pose, velocity), so that a change to
+    how seeds or draws are made, which silently moves every benchmark, fails here."""
+    from pathlib import Path
+
+    from ad_sim.rosbag import BagReader, group_episodes
+
+    bag = Path(__file__).resolve().parents[1] / "bags" / "samples" / "unseen-masks-0of1"
+    recorded = [e.instance for e in group_episodes(BagReader(bag, topics=["/ad_sim/instance"]))]
+    expected = benchmark("tiny", "unseen")
+    assert [r.episode_id for r in recorded] == [i.episode_id for i in expected]
+    for r, instance in zip(recorded, expected):
+        assert r.seed == instance.seed and r.material == instance.material and r.shape == instance.shape
+        assert dict(zip(r.parameter_names, r.parameters)) == instance.parameters
+        pose, velocity = r.initial_pose, r.initial_velocity.linear
+        assert (pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w) == instance.orientation
+        assert (pose.position.x, pose.position.y, pose.position.z) == tuple(instance.position())
+        assert (velocity.x, velocity.y, velocity.z) == instance.velocity
+
+
+def test_horizontal_velocity_is_uniform_over_the_disc():
+    """Uniform over the disc of radius HORIZONTAL_SPEED: a quarter of the speeds lie below half of it (a
+    uniform speed would put half there), E[speed^2] = HORIZONTAL_SPEED^2 / 2, and every heading alike."""
+    from ad_sim.instances import HORIZONTAL_SPEED
+
+    velocities = np.array([make(seed).velocity for seed in range(4000)])
+    speed = np.hypot(velocities[:, 0], velocities[:, 1])
+    assert speed.max() <= HORIZONTAL_SPEED
+    assert np.mean(speed <= HORIZONTAL_SPEED / 2) == pytest.approx(0.25, abs=0.03)
+    assert np.mean(speed**2) == pytest.approx(HORIZONTAL_SPEED**2 / 2, rel=0.05)
+    assert np.abs(velocities[:, :2].mean(axis=0)).max() < 0.01
+
+
+@pytest.mark.parametrize("shape", ["hammer", "cone", "torus"])
+def test_drop_pose_centres_the_objects_bounding_box_at_the_jittered_middle(shape):
+    """XY_JITTER: the centre of the object's (posed) bounding box is within +-XY_JITTER of the domain's
+    middle, exactly at 0.5 + jitter wherever the walls leave room for it there."""
+    from ad_sim.instances import XY_JITTER
+
+    vertices = np.asarray(shapes.load_mesh(shape).vertices)
+    unclipped = 0
+    for seed in range(20):
+        instance = make(seed, shape)
+        pose = instance.pose()
+        posed = SCALE * vertices @ pose[:3, :3].T + pose[:3, 3]
+        low, high = posed[:, :2].min(axis=0), posed[:, :2].max(axis=0)
+        centre, target, half = (low + high) / 2, 0.5 + np.array(instance.jitter), (high - low) / 2
+        assert np.all(np.abs(centre - 0.5) <= XY_JITTER + 1e-9)
+        room = (target - half >= BOUNDARY + WALL_MARGIN) & (target + half <= 1 - BOUNDARY - WALL_MARGIN)
+        np.testing.assert_allclose(centre[room], target[room], atol=1e-9)
+        unclipped += room.sum()
+    assert unclipped > 20  # the exact case was checked
+
+
+def test_drawn_per_family_keeps_benchmark_order_within_each_family():
+    from ad_sim.instances import drawn_per_family
+
+    pool = [i.episode_id for i in benchmark("small", "unseen")]
+    for seed in range(3):
+        drawn = [i.episode_id for i in drawn_per_family("small", "unseen", 6, seed=seed)]
+        assert len(drawn) == 18 and len(set(drawn)) == 18
+        for family in materials.FAMILIES:
+            of_family = [e for e in drawn if f"-{family}-" in e]
+            assert len(of_family) == 6 and of_family == sorted(of_family, key=pool.index), (seed, family)

@@ -208,3 +208,73 @@ def test_laws_never_produce_nan():
         mu, lam = M.lame(E, nu)
         for out in run_laws(F, mu, lam, yield_stress=500.0, alpha=M.drucker_prager_alpha(math.radians(45))):
             assert np.all(np.isfinite(out))
+
+
+# --------------------------------------------------------------------------- mutation-testing audit
+
+
+def test_drucker_prager_alpha_by_hand():
+    """alpha = sqrt(2/3) * 2 sin(phi) / (3 - sin(phi)) (docs/simulator.md): at 30 degrees sin = 1/2, so
+    alpha = sqrt(2/3) * 1 / 2.5; no friction, no cone."""
+    assert M.drucker_prager_alpha(math.radians(30.0)) == pytest.approx(math.sqrt(2 / 3) * 0.4, rel=1e-12)
+    assert M.drucker_prager_alpha(math.radians(90.0)) == pytest.approx(math.sqrt(2 / 3), rel=1e-12)  # 2 / (3 - 1)
+    assert M.drucker_prager_alpha(0.0) == 0.0
+
+
+@wp.kernel
+def _family_laws(
+    U: wp.mat33,
+    sigma: wp.vec3,
+    mu: float,
+    lam: float,
+    yield_stress: float,
+    alpha: float,
+    stress: wp.array(dtype=wp.mat33),
+    projected: wp.array(dtype=wp.vec3),
+):
+    family = wp.tid()
+    stress[family] = M.kirchhoff_svd(family, U, sigma, mu, lam)
+    projected[family] = M.project_sigma(family, sigma, mu, lam, yield_stress, alpha)
+
+
+def test_each_family_uses_its_own_elastic_and_plastic_law():
+    """docs/simulator.md: jelly = corotated + identity, plasticine = Hencky + von Mises, sand = Hencky +
+    Drucker-Prager. A stretched state (all singular values > 1: tension for sand, far outside a small yield
+    surface for plasticine) tells every pairing apart."""
+    s = np.array([1.3, 1.1, 1.05])
+    mu, lam = M.lame(1e5, 0.3)
+    stress = wp.zeros(3, dtype=wp.mat33, device="cpu")
+    projected = wp.zeros(3, dtype=wp.vec3, device="cpu")
+    identity = wp.mat33(*np.eye(3).ravel())
+    alpha = M.drucker_prager_alpha(0.5)
+    wp.launch(_family_laws, 3, inputs=[identity, wp.vec3(*s), mu, lam, 100.0, alpha, stress, projected], device="cpu")
+    stress, projected = stress.numpy().astype(np.float64), projected.numpy().astype(np.float64)
+    J = s.prod()
+    corotated = np.diag(2 * mu * (s - 1) * s + lam * J * (J - 1))
+    hencky = np.diag(2 * mu * np.log(s) + lam * np.log(s).sum())
+    assert np.abs(corotated - hencky).max() > 0.05 * mu  # the state tells the laws apart
+    codes = M.FAMILY_CODES
+    np.testing.assert_allclose(stress[codes["jelly"]], corotated, rtol=1e-4, atol=1e-3 * mu)
+    for family in ("plasticine", "sand"):
+        np.testing.assert_allclose(stress[codes[family]], hencky, rtol=1e-4, atol=1e-3 * mu)
+    np.testing.assert_allclose(projected[codes["jelly"]], s, rtol=1e-6)  # no plasticity
+    np.testing.assert_allclose(projected[codes["sand"]], 1.0, rtol=1e-6)  # tension: Sigma <- I
+    eps = np.log(projected[codes["plasticine"]])
+    # von Mises: the deviatoric strain lands on the yield surface, the volume (tr eps) is kept
+    assert np.linalg.norm(eps - eps.mean()) == pytest.approx(100.0 / (2 * mu), rel=1e-3)
+    assert eps.sum() == pytest.approx(np.log(s).sum(), rel=1e-4)
+
+
+def test_physical_bounds_of_parameters_outside_the_sampling_ranges():
+    """full_parameters allows values outside the sampling ranges (re-simulated predictions), unphysical ones
+    not: -1 < nu < 0.5, 0 <= phi < pi/2; a family's fixed values only as they are."""
+    assert M.full_parameters("jelly", {"youngs_modulus": 1e3, "poissons_ratio": -0.5})["poissons_ratio"] == -0.5
+    assert M.full_parameters("sand", {"friction_angle": 1.5})["friction_angle"] == 1.5
+    for family, parameters in [("jelly", {"youngs_modulus": 1e5, "poissons_ratio": -1.0}),
+                               ("sand", {"friction_angle": math.pi / 2}),
+                               ("sand", {"friction_angle": 2.0}),
+                               ("plasticine", {"youngs_modulus": 1e5, "poissons_ratio": 0.4, "yield_stress": 0.0})]:
+        with pytest.raises(ValueError, match="unphysical"):
+            M.full_parameters(family, parameters)
+    with pytest.raises(ValueError, match="sand fixes"):
+        M.full_parameters("sand", {"youngs_modulus": 1.2e5, "friction_angle": 0.5})

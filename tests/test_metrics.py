@@ -628,3 +628,80 @@ def test_report_gives_the_frames_its_clips_observed_and_keeps_a_row_without_clip
     assert json.loads((tmp_path / "metrics.json").read_text())["frames"]["15"]["n"] == 0
     write_report({20: full}, tmp_path / "whole", "t")  # every clip whole (or not recorded): the row's K
     assert "Clips: 6; frames per clip: 20." in (tmp_path / "whole" / "report.md").read_text()
+
+
+# --------------------------------------------------------------------------- mutation-testing audit
+
+
+def test_error_by_true_value_correlates_log_parameters_in_log_space():
+    """E and yield are compared in log space (their errors are log-MAE): a prediction that is a power of the
+    truth, ln pred = 2 ln true - c, is perfectly correlated there, though not linearly."""
+    from ad_estimator.metrics import error_by_true_value
+
+    true_e = 1.5e4 * 100.0 ** np.linspace(0.0, 1.0, 9)  # jelly's E range, two decades
+    true = np.array([[e, 0.2 + 0.02 * i, NAN, NAN] for i, e in enumerate(true_e)])
+    pred_params = _fill(true.copy())
+    pred_params[:, 0] = true_e**2 / 1.5e5
+    assert np.corrcoef(pred_params[:, 0], true_e)[0, 1] < 0.99  # linearly not 1: the case tells the two apart
+    table = error_by_true_value(Predictions([0] * 9, true, _onehot([0] * 9), pred_params))
+    assert table["jelly"]["youngs_modulus"]["correlation"] == pytest.approx(1.0, abs=1e-12)
+    assert table["jelly"]["poissons_ratio"]["correlation"] == pytest.approx(1.0, abs=1e-12)  # nu: linear, exact
+
+
+def test_calibration_leaves_out_log_parameter_clips_whose_prediction_has_no_log():
+    """A non-positive E prediction (a saved predictions.json of another evaluator, say) has no log-space error
+    to standardise: it is left out of E's calibration (n, coverage), not counted as a miss; its nu still counts."""
+    true = np.array([JELLY, JELLY])
+    pred_params = _fill(true.copy())
+    pred_params[0, E] = 0.0
+    pred_params[1, E] = true[1, E] * math.exp(0.1)  # within one log-space sigma of 0.2
+    sigma = np.array([[1e4, 0.01, NAN, NAN], [0.2 * pred_params[1, E], 0.01, NAN, NAN]])
+    c = uncertainty_calibration(Predictions([0, 0], true, _onehot([0, 0]), pred_params, pred_sigma=sigma))["jelly"]
+    assert c["youngs_modulus"]["n"] == 1
+    assert c["youngs_modulus"]["coverage_1sigma"] == 1.0 and c["youngs_modulus"]["coverage_2sigma"] == 1.0
+    assert c["youngs_modulus"]["error"] == pytest.approx(0.1)
+    assert c["poissons_ratio"]["n"] == 2
+
+
+def test_calibration_coverage_counts_an_error_of_exactly_one_and_two_sigma_as_within():
+    """coverage_ksigma is the fraction with |z| <= k (SPEC: within k sigma), boundaries included; the values
+    are exact in binary floating point."""
+    true = np.array([JELLY, JELLY])
+    true[:, NU] = 0.25
+    pred_params = _fill(true.copy())
+    pred_params[:, NU] = [0.3125, 0.375]  # 0.0625 and 0.125 off: z = 1 and z = 2 with sigma 0.0625
+    sigma = np.array([[NAN, 0.0625, NAN, NAN]] * 2)
+    c = uncertainty_calibration(Predictions([0, 0], true, _onehot([0, 0]), pred_params, pred_sigma=sigma))["jelly"]
+    assert c["poissons_ratio"]["n"] == 2
+    assert c["poissons_ratio"]["coverage_1sigma"] == 0.5 and c["poissons_ratio"]["coverage_2sigma"] == 1.0
+
+
+def test_saved_records_take_their_sigmas_from_raw_uncertainties_before_uncertainties():
+    """A record's `uncertainties` are the predicted family's (0 for a fixed parameter, NaN for one it lacks);
+    `raw_uncertainties` are the model's for every parameter, which pred_sigma holds: they win where both are."""
+    true = np.array([JELLY, SAND])
+    raw_sigma = np.array([[1e4, 0.01, 50.0, 0.02], [2e4, 0.02, 60.0, 0.03]])
+    records = Predictions([0, 2], true, _onehot([2, 2]), _fill(true), pred_sigma=raw_sigma).episodes()
+    for record in records:  # both clips predicted as sand: E and nu fixed (sigma 0), no yield
+        record["uncertainties"] = [0.0, 0.0, None, record["raw_uncertainties"][3]]
+    back = Predictions.from_episodes(records)
+    np.testing.assert_array_equal(back.pred_sigma, raw_sigma)
+    for record in records:
+        del record["raw_uncertainties"]
+    np.testing.assert_array_equal(Predictions.from_episodes(records).pred_sigma[:, :2], 0.0)
+
+
+def test_frame_counts_take_every_count_from_1_to_the_full_clip():
+    import argparse
+
+    from ad_estimator.metrics import FrameCounts
+    from ad_sim.materials import FRAME_COUNT
+
+    parser = argparse.ArgumentParser(prog="evaluate")
+    parser.add_argument("--frames", nargs="*", action=FrameCounts)
+    assert parser.parse_args(["--frames", str(FRAME_COUNT), "1"]).frames == [FRAME_COUNT, 1]
+    assert parser.parse_args(["--frames", "24,18", "15", "18"]).frames == [24, 18, 15]
+    assert parser.parse_args(["--frames"]).frames == []
+    for bad in (["0"], [str(FRAME_COUNT + 1)], [","]):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--frames", *bad])

@@ -239,3 +239,33 @@ def test_a_ctrl_c_during_a_swallowing_import_is_held_and_raised_after(tmp_path, 
     thread.join()
     assert ran == [before]
     sys.modules.pop("swallows_ctrl_c", None)
+
+
+# --------------------------------------------------------------------------- mutation-testing audit
+
+
+def test_the_lattice_is_cell_centred_and_centred_on_the_mesh():
+    """Points sit at (k + 1/2) * spacing: a box centred at 0 gets a lattice centred at 0 (mean 0, symmetric),
+    never on its faces."""
+    points = shapes.sample_volume("box", SPACING, scale=SCALE).astype(np.float64)
+    k = points / SPACING - 0.5
+    np.testing.assert_allclose(k, np.round(k), atol=1e-4)
+    np.testing.assert_allclose(points.mean(axis=0), 0.0, atol=1e-6)
+    np.testing.assert_allclose(points.min(axis=0), -points.max(axis=0), atol=1e-6)
+
+
+def test_jitter_is_symmetric_about_the_lattice_point():
+    """Each point moves by a uniform offset in [-jitter, jitter] * spacing per axis: on average nowhere, so the
+    object is not shifted by sampling."""
+    lattice = shapes.sample_volume("capsule", SPACING, scale=SCALE)
+    offset = (shapes.sample_volume("capsule", SPACING, scale=SCALE, rng=7) - lattice) / SPACING
+    assert len(offset) > 1000
+    np.testing.assert_allclose(offset.mean(axis=0), 0.0, atol=0.02)  # a one-sided offset: 0.125
+    assert (offset < -0.2).any() and (offset > 0.2).any()
+
+
+def test_a_shape_holding_exactly_min_count_points_is_not_refined():
+    plain = shapes.sample_volume("sphere", SPACING, scale=SCALE)
+    assert shapes.effective_spacing("sphere", SPACING, SCALE, min_count=len(plain)) == SPACING
+    np.testing.assert_array_equal(shapes.sample_volume("sphere", SPACING, scale=SCALE, min_count=len(plain)), plain)
+    assert shapes.effective_spacing("sphere", SPACING, SCALE, min_count=len(plain) + 1) < SPACING

@@ -854,3 +854,44 @@ def test_the_pipeline_trains_on_recorded_bags_and_generates_nothing_beside_them(
                                      "seed": "0"})
     ensure_bags(tmp_path / "data", "tiny", "seen", 0, "cpu", progress=False)
     assert len(calls) == 1 and "--split" in calls[0]
+
+
+# --------------------------------------------------------------------------- mutation-testing audit
+
+
+def test_learning_rate_warms_up_linearly_then_follows_a_cosine_down_to_min_lr():
+    lr, low, warmup, total = 1e-3, 1e-5, 10, 110
+    def at(step):
+        return engine.cosine_lr(step, total, lr, low, warmup)
+    # warm-up: step k (from 0) runs at (k + 1) / warmup of lr, so the first step already learns
+    assert [at(k) for k in (0, 4, 9)] == pytest.approx([lr / 10, lr / 2, lr], rel=1e-12)
+    # cosine over the remaining 100 steps: lr at its start, the mean of lr and min_lr halfway, min_lr at the end
+    assert at(10) == pytest.approx(lr, rel=1e-12)
+    assert at(60) == pytest.approx((lr + low) / 2, rel=1e-12)
+    assert at(35) == pytest.approx(low + (lr - low) * (1 + np.sqrt(0.5)) / 2, rel=1e-12)  # a quarter: cos(pi/4)
+    assert at(110) == pytest.approx(low, rel=1e-12) and at(500) == pytest.approx(low, rel=1e-12)  # and stays
+    lrs = [at(k) for k in range(10, 111)]
+    assert all(a >= b for a, b in zip(lrs, lrs[1:]))  # never rises again
+    assert engine.cosine_lr(0, 100, lr, low, 0) == pytest.approx(lr, rel=1e-12)  # without warm-up
+
+
+def test_fit_schedules_the_learning_rate_over_all_its_steps(tmp_path):
+    """fit's schedule: warm-up over warmup_fraction of all steps (epochs x batches per epoch), then the cosine;
+    an epoch's record holds the rate of its last step."""
+    torch.manual_seed(0)
+    model = torch.nn.Linear(2, 1)
+    samples = [{"x": torch.randn(2), "y": torch.randn(1)} for _ in range(8)]
+
+    def loss_fn(net, batch, train):
+        loss = torch.nn.functional.mse_loss(net(batch["x"]), batch["y"])
+        return loss, {"score": loss.detach()}
+
+    cfg = engine.FitConfig(epochs=4, batch_size=2, lr=1e-2, min_lr=1e-4, warmup_fraction=0.25, progress=False)
+    rt = engine.Runtime(0, 1, torch.device("cpu"))
+    history = engine.fit(model, samples, samples[:2], loss_fn, tmp_path, cfg, rt, meta={})["history"]
+    # 4 batches an epoch, 16 steps, 4 of warm-up: epoch e ends with step 4e - 1
+    def expected(step):
+        if step < 4:
+            return 1e-2 * (step + 1) / 4
+        return 1e-4 + (1e-2 - 1e-4) * (1 + np.cos(np.pi * (step - 4) / 12)) / 2
+    assert [r["lr"] for r in history] == pytest.approx([expected(4 * e - 1) for e in (1, 2, 3, 4)], rel=1e-9)

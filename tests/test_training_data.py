@@ -481,3 +481,67 @@ def test_camera_views_tell_apart_datasets_of_the_same_instances(tmp_path):
     assert x.camera_views() != y.camera_views()
     write_synthetic_bag(tmp_path / "z" / "a", 2, views=2, seed=3)  # every instance with both: no digest needed
     assert data.load_dataset(tmp_path / "z", tmp_path / "cache", progress=False).camera_views() == "0,1 (4 videos)"
+
+
+# --------------------------------------------------------------------------- mutation-testing audit
+
+
+def test_a_frames_index_is_its_stamp_offset_rounded_to_the_nearest_interval():
+    """A frame stamped a little before or after its time (a clock's jitter, float stamps) keeps its index;
+    a frame past the last one (the 26th) is not one of the episode's."""
+    start = 1_700_000_000_000_000_000
+    step = 25_000_000  # FRAME_INTERVAL in ns
+    exact = [(start + k * step, f"exact {k}") for k in range(26)]
+    frames = data._frames(exact, start)
+    assert sorted(frames) == list(range(25)) and frames[24] == (start + 24 * step, "exact 24")
+    early = data._frames([(start + k * step - 1, k) for k in range(1, 25)], start)
+    assert {t: m for t, (_, m) in early.items()} == {k: k for k in range(1, 25)}
+    jittered = data._frames([(start + k * step + (4 if k % 2 else -4) * step // 10, k) for k in range(25)], start)
+    assert {t: m for t, (_, m) in jittered.items()} == {k: k for k in range(25)}
+    assert data._frames([(start - step, "before"), (start + 25 * step, "after")], start) == {}
+
+
+def test_labels_normalise_the_sampled_parameters_over_the_union_ranges_and_zero_the_others():
+    label, si, norm, mask = data.labels_of("jelly", ["youngs_modulus", "poissons_ratio"], [1.5e5, 0.34])
+    assert label == FAMILIES.index("jelly") and np.isnan(si[2:]).all()
+    # union ranges: E 1.5e4..1.5e6 (log): 1.5e5 is the middle; nu 0.20..0.48: 0.34 is the middle
+    np.testing.assert_allclose(norm, [0.5, 0.5, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_array_equal(mask, [1, 1, 0, 0])
+    label, si, norm, mask = data.labels_of("sand", ["youngs_modulus", "poissons_ratio", "friction_angle"],
+                                           [1e5, 0.3, np.radians(27.5)])
+    np.testing.assert_array_equal(si[:2], [1e5, 0.3])  # sand's fixed E and nu are known ...
+    np.testing.assert_allclose(norm, [0.0, 0.0, 0.0, 0.5], atol=1e-6)  # ... but no targets: 0 and masked
+    np.testing.assert_array_equal(mask, [0, 0, 0, 1])
+    with pytest.raises(ValueError, match="unknown material 'water'"):
+        data.labels_of("water", [], [])
+
+
+def test_the_validation_share_is_the_nearest_count_and_at_least_one():
+    def sizes(n, fraction):
+        train, val = data.split_instances(n, fraction, seed=0)
+        assert len(train) + len(val) == n and not set(train) & set(val)
+        return len(val)
+
+    assert sizes(9, 0.2) == 2  # 1.8 -> 2
+    assert sizes(11, 0.2) == 2  # 2.2 -> 2
+    assert sizes(4, 0.1) == 1  # 0.4: still one validation instance
+    assert sizes(2, 0.9) == 1  # and at least one training instance
+    assert sizes(10, 0.0) == 0 and sizes(1, 0.5) == 0
+
+
+def test_the_first_view_of_each_instance_is_its_lowest(bags, tmp_path):
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    assert set(ds.video_view.tolist()) == {0, 1}
+    picked = ds.first_view_videos()
+    np.testing.assert_array_equal(ds.video_instance[picked], np.arange(len(ds)))
+    assert (ds.video_view[picked] == 0).all()
+    some = ds.first_view_videos(np.array([1, 4]))
+    np.testing.assert_array_equal(ds.video_instance[some], [1, 4])
+    assert (ds.video_view[some] == 0).all()
+
+
+def test_unit_floats_of_cached_videos():
+    np.testing.assert_allclose(data.as_unit_float(np.array([0, 128, 255], np.uint8)), [0.0, 128 / 255, 1.0], rtol=1e-6)
+    half = np.array([0.0, 0.25, 1.0], np.float16)
+    out = data.as_unit_float(half)
+    assert out.dtype == np.float32 and out.tolist() == [0.0, 0.25, 1.0]
