@@ -34,7 +34,7 @@ from ad_estimator.window import FrameWindow, clip_output
 from ad_sim.rosbag import BagReader
 from estimator_models import build_clip_model, build_streaming_model, falling_masks
 from estimator_ros import image_msg, ros_context, spin_until_shutdown, tracked, wait_for
-from ros_procs import ADRUN, interrupt_while_starting, kill_leftovers
+from ros_procs import ADRUN, REPO_ROOT, interrupt_while_starting, kill_leftovers
 from sim_fixtures import write_coverage_bag
 
 pytestmark = pytest.mark.ros
@@ -835,6 +835,23 @@ def test_ctrl_c_while_starting_exits_quietly_as_any_ctrl_c(model_paths, ros_doma
             text = "\n".join(lines)
             assert status == 0 and "Traceback" not in text and "KeyboardInterrupt" not in text, (delay, text)
             during_imports += lines == ["ad_estimator: interrupted while starting"]
+    finally:
+        kill_leftovers()
+    assert during_imports, "no Ctrl-C landed during the imports"
+
+
+def test_ctrl_c_while_replay_starts_exits_quietly(ros_domain_id, tmp_path):
+    """replay is an rclpy executable too: a Ctrl-C during its imports printed Python's traceback. It now exits with
+    status 0, as replay does after any Ctrl-C, and one line."""
+    bag = REPO_ROOT / "bags" / "samples" / "unseen-masks-0of1"
+    during_imports = 0
+    try:
+        for attempt, delay in enumerate((0.0, 0.0, 0.05)):
+            status, lines = interrupt_while_starting([str(ADRUN), "ad_estimator", "replay", str(bag)],
+                                                     tmp_path / f"{attempt}.log", delay)
+            text = "\n".join(lines)
+            assert status == 0 and "Traceback" not in text and "KeyboardInterrupt" not in text, (delay, text)
+            during_imports += lines == ["replay: interrupted while starting"]
     finally:
         kill_leftovers()
     assert during_imports, "no Ctrl-C landed during the imports"

@@ -317,3 +317,30 @@ def test_a_second_simulator_run_into_one_recording_is_warned_about(rclpy_context
     warnings = [line for line in log.splitlines() if "a new simulator run?" in line]
     assert len(warnings) == 1 and "an episode stamped 0.000 s, not after the one before (1.000 s)" in warnings[0], log
     assert recorder_counts(log) == (4, 4), log  # recorded all the same: the bag loses nothing
+
+
+def test_a_signal_while_starting_leaves_no_bag(tmp_path, monkeypatch):
+    """A Ctrl-C that lands while the recorder starts (here: inside rclpy.init) stops it before it makes its bag: it
+    used to go on, create the output folder and an empty bag (with the default output, a new timestamped folder on
+    every such Ctrl-C), then stop."""
+    import os
+
+    import rclpy
+
+    from ad_sim import record_node
+
+    init = rclpy.init
+
+    def interrupted_init(*args, **kwargs):
+        init(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGINT)  # handled by the recorder's own handler, installed first
+
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    monkeypatch.setattr(rclpy, "init", interrupted_init)
+    try:
+        record_node.main(["record", "--ros-args", "-p", f"output:={tmp_path / 'out'}"])
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    assert not (tmp_path / "out").exists()
+    assert not rclpy.ok()  # the context was shut down

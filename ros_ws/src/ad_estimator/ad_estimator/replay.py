@@ -16,21 +16,24 @@ import time
 import warnings
 from pathlib import Path
 
-import rclpy
-from builtin_interfaces.msg import Time
-from rosgraph_msgs.msg import Clock
-from rclpy._rclpy_pybind11 import RCLError
-from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from tqdm import tqdm
+from ad_sim.dds import quiet_interrupt
 
-from ad_estimator.cli import HelpFormatter, topic
-from ad_estimator.window import ns_to_stamp
-from ad_sim import messages
-from ad_sim.dds import message_class, non_ros_args, qos_from_profile, use_fast_heartbeat
-from ad_sim.rosbag import BagError, BagReader, one_line_warnings, parse_offered_qos_profiles
+with quiet_interrupt("replay"):  # a Ctrl-C before main() handles signals: no traceback
+    import rclpy
+    from builtin_interfaces.msg import Time
+    from rosgraph_msgs.msg import Clock
+    from rclpy._rclpy_pybind11 import RCLError
+    from rclpy.duration import Duration
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from tqdm import tqdm
+
+    from ad_estimator.cli import HelpFormatter, topic
+    from ad_estimator.window import ns_to_stamp
+    from ad_sim import messages
+    from ad_sim.dds import message_class, non_ros_args, qos_from_profile, use_fast_heartbeat
+    from ad_sim.rosbag import BagError, BagReader, one_line_warnings, parse_offered_qos_profiles
 
 # time.sleep raises OverflowError past about 292 years (and --rate 1e-300 makes any gap that long): --delay is
 # kept to a day and --rate to 1000 times slower than recorded; the pacing sleeps go in steps of at most a day,

@@ -66,8 +66,8 @@ PARAMETERS = (
     ("topics", Parameter.Type.STRING_ARRAY, "topics to record (names relative to the root namespace too, as ROS resolves "
                                             "them); unset: every simulator topic under topic_prefix, as they appear"),
     ("topic_prefix", messages.DEFAULT_PREFIX, "prefix of the simulator topics"),
-    ("max_bag_size", 0, "split .mcap files once one reaches this many bytes (it exceeds them by its last chunk, at most "
-                        "an eighth of them, and its summary); 0: never"),
+    ("max_bag_size", 0, "split .mcap files once one reaches this many bytes (it exceeds them by its last chunk, an "
+                        "eighth of them and a message at most, and its summary); 0: never"),
     ("compression", "zstd", "chunk compression: zstd | lz4 | none"),
     ("stamp_source", "header", "log time of a message: header (its stamp, for types starting with a Header) | receive"),
     ("discovery_period", 0.2, "seconds between looks for new topics"),
@@ -233,6 +233,8 @@ def main(args: list[str] | None = None) -> None:
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
+        if stop.is_set():  # stopped while starting: no empty bag left behind
+            return
         node = RecordNode()
         try:
             executor = SingleThreadedExecutor()

@@ -348,8 +348,8 @@ class BagWriter:
     killed writer's are: every complete chunk readable; `lost` then counts, per topic, the messages
     written to it that were not yet in a complete chunk (they are not in the topic counts).
     max_bag_size (bytes; 0: no split) splits the bag as rosbag2 does: a file is closed once it has reached that size,
-    so it exceeds it by up to its last chunk and its summary. Chunks are then at most an eighth of max_bag_size (or one
-    message, where a message is larger), which keeps that small.
+    so it exceeds it by up to its last chunk and its summary. Chunks are then at most an eighth of max_bag_size and one
+    message (the MCAP writer ends a chunk once it exceeds its size), which keeps that small.
     """
 
     def __init__(

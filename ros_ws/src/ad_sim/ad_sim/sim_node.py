@@ -251,7 +251,9 @@ class SimNode(Node):
         views = self.param("views") or None
         loop = self.param("loop")
         limit = self.param("loop_memory_mb")
-        kept, kept_bytes = ([] if loop else None), 0  # the first pass's episodes; None: not kept
+        kept, kept_bytes = ([] if loop and limit else None), 0  # the first pass's episodes; None: not kept
+        if loop and not limit:
+            self.get_logger().info("loop: loop_memory_mb is 0, so each pass simulates them again")
         try:
             while not self.stop.is_set():
                 if kept:  # a later pass
