@@ -296,20 +296,23 @@ def test_a_frame_with_a_malformed_stamp_is_skipped_as_in_the_node(setup, tmp_pat
 
 
 def test_an_image_size_change_restarts_the_window_as_in_the_node(setup, tmp_path):
-    """A 64x64 frame 5 in a 128x128 episode: the window restarts twice, so the episode's window never
-    fills 25 (nor 6) slots: it is left out of those rows, kept in the K = 4 row (frames before the change)."""
+    """A 64x64 frame 5 in a 128x128 episode: the window restarts twice (at frames 5 and 6), so the episode's
+    window never fills 25 (nor 20: frames 6 to 24 fill 19) slots: it is left out of those rows, kept in the K = 4
+    row (slots that end before the change)."""
     model_path, _ = setup
     small = falling_masks(seed=3, size=64)[0]
     bag = write_test_bag(tmp_path / "bag", edit_mask=damaged(1, 5, lambda m: m.update(
         height=64, width=64, step=64, data=small.tobytes())))
     with pytest.warns(UserWarning) as caught:
-        assert run_main(model_path, bag, tmp_path / "out", "--frames", "6", "4") == 0
+        assert run_main(model_path, bag, tmp_path / "out", "--frames", "20", "4") == 0
     messages = [str(w.message) for w in caught]
     assert any("episode test-disc-plasticine-0001: the image size changes from 128x128 to 64x64 at stamp 1.625 s"
                in m for m in messages), messages
-    assert any("episode test-disc-plasticine-0001: left out of the K = 25, 6 row(s)" in m for m in messages), messages
+    restarted = "the first: its window restarted at the image size change at stamp 1.650 s)"
+    assert any("episode test-disc-plasticine-0001: left out of the K = 25, 20 row(s)" in m and m.endswith(restarted)
+               for m in messages), messages
     predictions = json.loads((tmp_path / "out" / "predictions.json").read_text())
-    assert [len(predictions["frames"][k]) for k in ("25", "6", "4")] == [2, 2, 3]
+    assert [len(predictions["frames"][k]) for k in ("25", "20", "4")] == [2, 2, 3]
     assert predictions["left_out"]["25"] == [{"bag": str(bag), "episode_id": "test-disc-plasticine-0001",
                                               "reason": "its window holds 19 of 25 frame slots"}]
     assert "Clips: 2;" in (tmp_path / "out" / "report.md").read_text()
@@ -319,7 +322,9 @@ def test_an_episode_cut_short_is_left_out_of_the_rows_it_cannot_fill(setup, tmp_
     model_path, _ = setup
     bag = write_test_bag(tmp_path / "bag", edit_mask=lambda index, k, m: None if index == 2 and k >= 12 else m)
     with pytest.warns(UserWarning, match=r"episode test-disc-sand-0002: left out of the K = 25, 18 row\(s\): fewer "
-                                         r"frame slots than K \(the K = 25 window holds 12; 12 frames accepted"):
+                                         r"frame slots than K \(the K = 25 window holds 12; its 12 accepted frames "
+                                         r"span 0\.275 s, slot 24 lies 0\.600 s after the first: the episode is cut "
+                                         r"short\)"):
         assert run_main(model_path, bag, tmp_path / "out", "--frames", "18", "12") == 0
     assert "episodes left out of the rows K = 25: 1, K = 18: 1" in capsys.readouterr().out
     predictions = json.loads((tmp_path / "out" / "predictions.json").read_text())
@@ -334,21 +339,31 @@ def test_an_episode_cut_short_is_left_out_of_the_rows_it_cannot_fill(setup, tmp_
 def burst_stamp(index: int, frame: int) -> int:
     """A camera that sends frames 10-17 of each episode 4 times as fast as the model's interval and the rest
     further apart (in intervals from the start: 0..9, 9.25..11, then 14, 17, .., 32): the first 18 frames span
-    12 frame slots, the first 10 fill 10, and the first 25 reach past the last slot (their window is complete)."""
+    12 frame slots, the first 10 fill 10, and the first 25 reach past the last slot (their window is complete).
+    Every slot of every window lies within a frame interval of a frame, so each is filled."""
     at = frame if frame < 10 else 9 + 0.25 * (frame - 9) if frame < 18 else 11 + 3 * (frame - 17)
     return messages.frame_stamp(index, 0) + round(at * 25_000_000)
 
 
-def test_a_temporal_ood_row_that_every_episode_was_left_out_of_stays_as_no_clips(setup, tmp_path, capsys):
-    """A row that no episode fills, which no simulator bag gives (its frames are on the model's interval): here
-    every episode is left out of the K = 18 row (its first 18 frames fill 12 slots, burst_stamp) and kept in the
-    K = 25 and 10 rows. The 18 row stays, in metrics.json (n 0) and in both of report.md's tables and the output as "no
-    clips" (it was dropped: the report read as if 18 had not been asked for); the other rows are those of a
-    run without it. `python -m training report` rebuilds the same report from the predictions.json."""
+def test_a_temporal_ood_row_that_every_episode_was_left_out_of_stays_as_no_clips(setup, tmp_path, capsys, monkeypatch):
+    """A row that no episode fills, kept in the K = 25 and 10 rows: here every episode's K = 18 window is made to
+    hold 12 slots. (No bag gives that now that rows are frame slots: a window that fills the full clip's slots fills
+    every K's; with rows of camera frames, a burst of frames, burst_stamp, gave it.) The 18 row stays, in
+    metrics.json (n 0) and in both of report.md's tables and the output as "no clips" (it was dropped: the report
+    read as if 18 had not been asked for); the other rows are those of a run without it. `python -m training
+    report` rebuilds the same report from the predictions.json."""
+    import dataclasses
+
     from training.__main__ import main as training_main
 
-    model, _ = setup
-    bag = write_test_bag(tmp_path / "bag", frame_stamp=burst_stamp)
+    model, bag = setup
+    predict = evaluate.predict_episode
+
+    def twelve_slots_at_18(*args, **kwargs):
+        prediction = predict(*args, **kwargs)
+        return dataclasses.replace(prediction, slots=12) if kwargs.get("slots") == 18 else prediction
+
+    monkeypatch.setattr(evaluate, "predict_episode", twelve_slots_at_18)
     with pytest.warns(UserWarning) as caught:
         assert run_main(model, bag, tmp_path / "out", "--frames", "18", "10") == 0
     assert [str(w.message).split(";")[0] for w in caught] == [
@@ -547,7 +562,7 @@ def test_a_bag_without_ground_truth_is_said_and_counted(setup, tmp_path, capsys)
 
 
 def test_a_copy_of_a_bag_is_scored_once(setup, tmp_path, capsys):
-    """Bags holding the same episodes (id and seed; say, a backup copy beside the bag under --bags): each
+    """Bags holding the same episodes (the same simulations; say, a backup copy beside the bag under --bags): each
     episode is scored once, the copies left out with one warning a bag, and counted (they were all scored
     again: every n doubled, and a copied bag's episodes weighed twice as much as the others'). `python -m
     training evaluate` reads such a copy once too."""
@@ -557,9 +572,8 @@ def test_a_copy_of_a_bag_is_scored_once(setup, tmp_path, capsys):
     with pytest.warns(UserWarning) as caught:
         assert run_main(model, tmp_path / "bags", tmp_path / "out", "--frames", "18") == 0
     first, copy = tmp_path / "bags" / "a", tmp_path / "bags" / "b"
-    assert [str(w.message) for w in caught] == [f"{copy}: 3 episode(s) left out of every row: the same episode (id "
-                                                f"and seed) was read from {first} (a copy of a recording is scored "
-                                                "once)"]
+    assert [str(w.message) for w in caught] == [f"{copy}: 3 episode(s) left out of every row: the same simulation "
+                                                f"was scored from {first} (a copy of a recording is scored once)"]
     assert "episodes left out of the rows K = 25: 3, K = 18: 3" in capsys.readouterr().out
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())["frames"]
     assert run_main(model, good, tmp_path / "one") == 0
@@ -567,7 +581,32 @@ def test_a_copy_of_a_bag_is_scored_once(setup, tmp_path, capsys):
     saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
     assert {p["bag"] for p in saved["frames"]["25"]} == {str(first)}
     assert [(e["bag"], e["reason"]) for e in saved["left_out"]["18"]] == \
-        [(str(copy), f"the same episode (id and seed) was read from {first}")] * 3
+        [(str(copy), f"the same simulation was scored from {first}")] * 3
+
+
+def test_a_parameter_sweep_of_one_id_and_seed_is_not_taken_for_copies(setup, tmp_path):
+    """A stiffness sweep of the simulator node's single-instance mode: one bag per Young's modulus, each episode
+    of the same id (custom-<shape>-<material>-0000) and seed, as docs/simulator.md advises for comparing
+    parameters. Evaluate took every bag after the first for a copy of it and scored one episode of three."""
+    model, _ = setup
+    for e in (2e4, 2e5, 2e6):
+        write_test_bag(tmp_path / "bags" / f"E{e:.0e}", episodes=[("jelly", {"youngs_modulus": e, "poissons_ratio": 0.3})])
+    assert run_main(model, tmp_path / "bags", tmp_path / "out") == 0
+    saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert sorted(p["true_parameters"]["youngs_modulus"] for p in saved["frames"]["25"]) == [2e4, 2e5, 2e6]
+    assert not saved["left_out"]["25"]
+
+
+def test_a_copy_left_out_of_every_row_does_not_keep_a_whole_copy_out(setup, tmp_path, capsys):
+    """The first bag's episodes cut short (10 frames: in no row), a whole copy in the second: the copy is scored.
+    The first bag claimed the episodes before they were scored, and the run ended with no episode at all."""
+    model, good = setup
+    write_test_bag(tmp_path / "bags" / "a", frames=10)
+    shutil.copytree(good, tmp_path / "bags" / "b")
+    with pytest.warns(UserWarning, match="cut short"):
+        assert run_main(model, tmp_path / "bags", tmp_path / "out") == 0
+    saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert {p["bag"] for p in saved["frames"]["25"]} == {str(tmp_path / "bags" / "b")} and len(saved["frames"]["25"]) == 3
 
 
 @pytest.mark.parametrize("episode, reason", [
@@ -612,3 +651,120 @@ def test_frames_alone_for_a_model_of_fewer_frames_gives_the_rows_it_reaches(tmp_
     capsys.readouterr()
     assert run_main(model, bag, tmp_path / "out", "--frames", "22") == 1
     assert capsys.readouterr().err == "evaluate: --frames [22]: each K must be in 1..20\n"
+
+
+# --------------------------------------------------------------------------- audit: inf, loops, old schemas, slots
+
+
+def test_an_infinite_sigma_is_written_as_null_and_the_run_is_kept(setup, tmp_path, monkeypatch, capsys):
+    """A model whose sigma overflows to inf (here E's and yield's, the log-scaled ones): the run ended after all the
+    inference with a traceback at predictions.json ("Out of range float values are not JSON compliant"), and
+    lost. Now both JSON files are strict JSON, the inf written as null as NaN is, and `python -m training report`
+    rebuilds the same metrics from that predictions.json (a null sigma, like an inf one, is no sigma)."""
+    from ad_estimator.model import ParameterRange
+    from training.__main__ import main as training_main
+
+    model, bag = setup
+    finite = ParameterRange.sigma
+    monkeypatch.setattr(ParameterRange, "sigma",
+                        lambda self, value, sigma_u: math.inf if self.scale == "log" else finite(self, value, sigma_u))
+    assert run_main(model, bag, tmp_path / "out") == 0
+    strict = {"parse_constant": lambda name: pytest.fail(f"non-standard JSON constant {name}")}
+    saved = json.loads((tmp_path / "out" / "predictions.json").read_text(), **strict)
+    for episode in saved["frames"]["25"]:
+        assert episode["raw_uncertainties"][0] is None and episode["raw_uncertainties"][2] is None
+        assert all(isinstance(u, float) and u > 0 for u in (episode["raw_uncertainties"][1],
+                                                             episode["raw_uncertainties"][3]))
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text(), **strict)["frames"]
+    capsys.readouterr()
+    assert training_main(["report", "--predictions", str(tmp_path / "out" / "predictions.json"),
+                          "--out", str(tmp_path / "again")]) == 0
+    assert json.loads((tmp_path / "again" / "metrics.json").read_text())["frames"] == metrics
+
+
+def test_a_looping_simulators_replayed_episodes_are_scored_once(setup, tmp_path, capsys):
+    """The simulator node with `loop: true` replays its first pass's episodes with the same episode id and seed
+    (sim_node: the kept episodes, or the same instances simulated again), only episode_index and stamps going on.
+    A recording of two passes scored each episode twice (a copy in another bag was scored once). Now the repeats are
+    left out of every row with one warning a bag giving their count, and listed in left_out; the metrics are those of
+    one pass. A copy of the looping bag beside it has all its episodes left out as copies."""
+    model, one_pass = setup
+    looped = write_test_bag(tmp_path / "bags" / "looped", passes=2)
+    with pytest.warns(UserWarning) as caught:
+        assert run_main(model, looped, tmp_path / "out", "--frames", "18") == 0
+    repeat = "the same simulation was scored earlier from this bag"
+    assert [str(w.message) for w in caught] == [
+        f"{looped}: 3 episode(s) left out of every row: {repeat} (a looping simulator's later passes replay its "
+        "episodes; each is scored once)"]
+    assert "episodes left out of the rows K = 25: 3, K = 18: 3" in capsys.readouterr().out
+    saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert [p["episode_id"] for p in saved["frames"]["25"]] == [f"test-disc-{m}-000{i}" for i, (m, _) in
+                                                                enumerate(EPISODES)]
+    assert [p["oldest_stamp_ns"] for p in saved["frames"]["25"]] == [messages.frame_stamp(i, 0) for i in range(3)]
+    assert saved["left_out"]["18"] == saved["left_out"]["25"] == [
+        {"bag": str(looped), "episode_id": f"test-disc-{m}-000{i}", "reason": repeat} for i, (m, _) in
+        enumerate(EPISODES)]
+    assert run_main(model, one_pass, tmp_path / "one", "--frames", "18") == 0
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["frames"] == \
+        json.loads((tmp_path / "one" / "metrics.json").read_text())["frames"]
+    shutil.copytree(looped, tmp_path / "bags" / "zcopy")
+    with pytest.warns(UserWarning) as caught:
+        assert run_main(model, tmp_path / "bags", tmp_path / "two") == 0
+    assert [str(w.message).split(":")[0] for w in caught] == [str(looped), str(tmp_path / "bags" / "zcopy")]
+    assert str(caught[1].message).startswith(f"{tmp_path / 'bags' / 'zcopy'}: 6 episode(s) left out of every row: "
+                                             f"the same simulation was scored from {looped}")
+    assert len(json.loads((tmp_path / "two" / "predictions.json").read_text())["frames"]["25"]) == 3
+
+
+@pytest.mark.parametrize("field", ["seed", "episode_id", "material", "parameter_names", "parameters"])
+def test_ground_truth_of_an_older_definition_is_a_one_line_error(setup, tmp_path, capsys, field):
+    """A bag whose /ad_sim/instance is recorded with an ad_msgs/msg/SimInstance definition (the bag's own schema
+    text) that lacks a field evaluate reads: a one-line error naming the bag, the topic and the field. It was an
+    AttributeError traceback ("'SimInstance' object has no attribute 'seed'"), from ad_sim.rosbag's
+    distinct_episodes for the id and seed, from the scoring for the others."""
+    from estimator_bags import without_field
+
+    model, _ = setup
+    bag = write_test_bag(tmp_path / "old", instance_schema=without_field(messages.INSTANCE_TYPE, field))
+    assert run_main(model, bag, tmp_path / "out") == 1
+    assert capsys.readouterr().err == (
+        f"evaluate: {bag}: the ground truth on /ad_sim/instance lacks the field {field} that evaluate reads (the bag "
+        "records another definition of ad_msgs/msg/SimInstance than this one: an older or a foreign one)\n")
+    assert not (tmp_path / "out").exists()
+
+
+def at_fps(fps: float):
+    return lambda index, frame: messages.frame_stamp(index, 0) + round(frame * 1e9 / fps)
+
+
+@pytest.mark.parametrize("frame_stamp, frames", [(at_fps(60), 40), (at_fps(30), 25), (burst_stamp, 25)],
+                         ids=["60fps", "30fps", "burst"])
+def test_rows_are_frame_slots_whatever_the_camera_rate(setup, tmp_path, capsys, frame_stamp, frames):
+    """Row K is the first K frame slots (K x the model's 25 ms from the episode's first frame), as the node's window
+    fills them, not the first K camera frames. At 60 fps the first 25 frames reach 0.4 s, 17 slots: every episode
+    was left out of the full row (exit 1, "no episode with 25 frames") though the node estimates each of them;
+    at 30 fps the first 18 frames reach 0.57 s, and the K = 18 row's estimates were made from 24 slots; a burst of
+    frames (burst_stamp) left every episode out of the K = 18 row. Now each row's estimate is the node's: its
+    complete one (episode policy) for the full row, and for K, the first K slots of its anytime window when they
+    settle."""
+    model_path, _ = setup
+    bag = write_test_bag(tmp_path / "bag", frame_stamp=frame_stamp, frames=frames)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing is left out, nothing warned about
+        assert run_main(model_path, bag, tmp_path / "out", "--frames", "18", "10") == 0
+    saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    assert {k: [p["slots"] for p in v] for k, v in saved["frames"].items()} == {
+        "25": [25] * 3, "18": [18] * 3, "10": [10] * 3}
+    model = EstimatorModel.load(model_path)
+    for index in range(len(EPISODES)):
+        stamps = [frame_stamp(index, k) for k in range(frames)]
+        masks = falling_masks(count=frames, seed=100 + index)
+        for k in (25, 18, 10):
+            window = FrameWindow(model.info.frame_interval, model.info.frame_count, history=model.info.previous_frames,
+                                 **({} if k == 25 else {"policy": "anytime", "min_frames": k, "every_n": 25}))
+            out, *_ = [o for s, m in zip(stamps, masks) for o in window.add(s, m, model.encode)]
+            assert len(out.valid) == k and out.valid.all()
+            episode = saved["frames"][str(k)][index]
+            assert (episode["frames_used"], episode["newest_stamp_ns"]) == (k, out.newest_stamp_ns)
+            np.testing.assert_allclose(episode["probabilities"],
+                                       model.predict(out.features, out.valid).probabilities, rtol=1e-5)

@@ -705,3 +705,24 @@ def test_frame_counts_take_every_count_from_1_to_the_full_clip():
     for bad in (["0"], [str(FRAME_COUNT + 1)], [","]):
         with pytest.raises(SystemExit):
             parser.parse_args(["--frames", *bad])
+
+
+def test_json_text_writes_infinities_as_null_as_it_does_nan(tmp_path):
+    """inf (an overflowing sigma or error) is no more JSON than NaN: json.dumps(allow_nan=False) raised "Out of
+    range float values are not JSON compliant" and the report was lost after all the inference. Both become null
+    (JSON has neither), and metrics.json of a row with an infinite error is written; its table says inf."""
+    INF = math.inf
+    text = json_text({"a": INF, "b": [-INF, 1.5, NAN], "c": (np.float64(INF), {"d": -INF})})
+    assert json.loads(text, parse_constant=lambda name: pytest.fail(f"non-standard JSON constant {name}")) == \
+        {"a": None, "b": [None, 1.5, None], "c": [None, {"d": None}]}
+    true = np.array([JELLY, SAND])
+    pred = _fill(true)
+    pred[0, NU] = INF  # the jelly's nu: its error and RegL1 are inf
+    sigma = _fill(true) * 0.1
+    sigma[0, E] = INF
+    results = write_report({25: Predictions(np.array([0, 2]), true, _onehot([0, 2]), pred, pred_sigma=sigma)},
+                           tmp_path, "t")
+    saved = json.loads((tmp_path / "metrics.json").read_text())["frames"]["25"]
+    assert saved["families"]["jelly"]["correct"]["poissons_ratio"] is None and saved["regl1"] is None
+    assert results["25"]["regl1"] == INF and "| inf |" in format_table(results)
+    assert saved["families"]["sand"]["regl1"] == results["25"]["families"]["sand"]["regl1"]

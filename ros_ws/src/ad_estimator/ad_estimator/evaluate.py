@@ -3,13 +3,16 @@
 Every episode's mask frames go through the node's own code: images.image_to_mask, then the
 window's slots (window.clip_output: the slots the live window holds when the episode's stream
 ends), then model.predict. So the per-episode predictions equal what the live node publishes for
-the same frames. As in the node, a frame images.py rejects is skipped (with a warning, and counted)
+the same frames. Row K is the first K frame slots (K x the model's frame interval from the episode's
+first frame: a simulator clip's first K frames, whatever the camera's rate), as the node's window fills
+them. As in the node, a frame images.py rejects is skipped (with a warning, and counted)
 and an image size change restarts the window. An episode whose window holds fewer than K frame
 slots (cut short, or restarted) is left out of the K row, and one without a usable mask frame out
 of every row, with a warning; so is one whose ground truth the metrics cannot score (unscorable_ground_truth)
-and one read before from another bag (the same id and seed: a copy of a recording, scored once). A bag
-without ground truth gives no episode (warned, and counted). Metrics (SPEC 8) come
-from ad_estimator.metrics; --frames K adds the temporal out-of-distribution rows (only the first K
+and one scored before (the same simulation: its ground truth all but its stamp and index), from another bag (a
+copy of a recording) or from the same one (a looping simulator's replay): each is scored once. A bag without ground truth gives no episode (warned, and
+counted); ground truth without a field evaluate reads (another definition of the message) is an error. Metrics
+(SPEC 8) come from ad_estimator.metrics; --frames K adds the temporal out-of-distribution rows (only the first K
 frames observed). Needs no ROS runtime.
 """
 from __future__ import annotations
@@ -43,11 +46,12 @@ IMAGE_TYPE = messages.IMAGE_TYPE
 
 @dataclass
 class EpisodePrediction:
-    """One episode's ground truth and the model's estimate from its first `frames` frames."""
+    """One episode's ground truth and the model's estimate from its first `frames` frames (evaluate's rows: frame
+    slots, see predict_episode)."""
 
     episode_id: str
     bag: str
-    frames: int  # frames observed
+    frames: int  # frames observed: the row's K
     true_material: str
     true_parameters: dict[str, float]
     material: str
@@ -168,6 +172,7 @@ def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = Fals
         nonlocal instances
         for episode in episodes:
             instances += 1
+            check_ground_truth(episode.instance, bag)
             yield episode
 
     for episode in distinct_episodes(counted(group_episodes(reader, INSTANCE_TOPIC)), collided):
@@ -176,6 +181,20 @@ def episode_frames(bag: Path, mask_topic: str = MASK_TOPIC, recover: bool = Fals
         problems += reader.problems
     if without_ground_truth is not None and not instances:
         without_ground_truth.append(str(bag))
+
+
+#: The ground truth's fields evaluate reads: the episode's identity (id and seed), and what it is scored against.
+GROUND_TRUTH_FIELDS = ("episode_id", "seed", "material", "parameter_names", "parameters")
+
+
+def check_ground_truth(instance, bag: Path) -> None:
+    """BagError unless the ground truth message has every field evaluate reads. A bag records its own definition
+    of each message type (its schema), with which its messages are decoded: one of an older or foreign
+    ad_msgs/SimInstance of the same name may lack some (that was an AttributeError traceback)."""
+    if missing := [name for name in GROUND_TRUTH_FIELDS if not hasattr(instance, name)]:
+        raise BagError(f"{bag}: the ground truth on {INSTANCE_TOPIC} lacks the field{'s' if len(missing) > 1 else ''} "
+                       f"{', '.join(missing)} that evaluate reads (the bag records another definition of "
+                       f"{INSTANCE_TYPE} than this one: an older or a foreign one)")
 
 
 def _stamp_or_none(stamp) -> int | None:
@@ -187,19 +206,29 @@ def _stamp_or_none(stamp) -> int | None:
 
 def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed: int,
                     slot_tolerance: float = DEFAULT_SLOT_TOLERANCE,
-                    masks: list[np.ndarray] | None = None, encode=None) -> EpisodePrediction | None:
-    """The estimate from the episode's first `observed` frames. `masks` (the frames converted) and
-    `encode` (e.g. caching) let several prefixes of one episode share that work."""
+                    masks: list[np.ndarray] | None = None, encode=None, slots: int | None = None
+                    ) -> EpisodePrediction | None:
+    """The estimate from the episode's first `observed` frames (all of them placed on the model's slots), or
+    with `slots` (at most the model's frame count), from its first `slots` frame slots, which is what evaluate's
+    rows are: the slots 0..slots-1 of the node's window (the frames up to the last one's time, and the tolerance
+    past it), as they are when the last of them settles; later frames change none of them. At the model's frame
+    interval (a simulator clip) both are the first K frames; from a faster camera K frames fill fewer slots,
+    from a slower one more. `masks` (the frames converted) and `encode` (e.g. caching) let several prefixes of
+    one episode share that work."""
     frames = frames[:observed]
     if not frames:
         return None
     if masks is None:
         masks = [image_to_mask(image, MAX_IMAGE_PIXELS, model.info.input_threshold()) for _, image in frames]
+    # A window of `slots` slots fills its slots as the model's does its first `slots`: the same frames, encoded
+    # with the same earlier ones; its reach (and so its restarts) end with its last slot, as the node's estimate
+    # from that many slots does.
     out = clip_output([s for s, _ in frames], masks[:observed], encode or model.encode, model.info.frame_interval,
-                      model.info.frame_count, slot_tolerance=slot_tolerance, history=model.info.previous_frames)
+                      slots or model.info.frame_count, slot_tolerance=slot_tolerance,
+                      history=model.info.previous_frames)
     estimate = model.predict(out.features, out.valid)
     return EpisodePrediction(
-        episode_id=instance.episode_id, bag=str(bag), frames=observed, true_material=instance.material,
+        episode_id=instance.episode_id, bag=str(bag), frames=slots or observed, true_material=instance.material,
         true_parameters=dict(zip(instance.parameter_names, (float(v) for v in instance.parameters))),
         material=estimate.material, probabilities=estimate.probabilities.tolist(),
         parameters=estimate.parameters.tolist(), raw_parameters=estimate.raw_parameters.tolist(),
@@ -244,26 +273,39 @@ def check_scorable(model: EstimatorModel) -> None:
 
 def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], mask_topic: str = MASK_TOPIC,
              progress: bool = True, recover: bool = False) -> Evaluation:
-    """Predictions per number of observed frames, every episode of every bag (see score_episode)."""
+    """Predictions per number of observed frames (frame slots), every episode of every bag (see score_episode),
+    each distinct simulation (simulation_key) once: a copy in a later bag, or a repeat later in the same bag (a
+    looping simulator's), of an episode scored already is left out of every row, with one warning a bag."""
     check_scorable(model)
     result = Evaluation({k: [] for k in frame_counts}, left_out={k: [] for k in frame_counts})
-    read_from: dict[tuple[str, int], Path] = {}  # (episode_id, seed) -> the bag it was first read from
+    scored_from: dict[tuple, Path] = {}  # simulation_key -> the bag it was first scored from
     with tqdm(desc="episodes", unit="ep", disable=None if progress else True, file=sys.stderr) as bar:
         for bag in bags:
             before = len(result.left_out[frame_counts[0]])
             copies: dict[Path, int] = {}  # episodes read before, per bag they were read from
+            repeats = 0  # episodes read before from this bag
             for instance, frames in episode_frames(bag, mask_topic, recover, result.source_problems,
                                                    result.without_ground_truth):
                 bar.update()
-                if (first := read_from.setdefault((instance.episode_id, int(instance.seed)), bag)) != bag:
-                    copies[first] = copies.get(first, 0) + 1  # a copy of a recording: it would count twice
+                key = simulation_key(instance)
+                if (first := scored_from.get(key)) is not None:  # it would count twice: scored once, the first time
+                    if first == bag:
+                        repeats += 1  # a looping simulator's later pass (the same simulation, later stamps)
+                    else:
+                        copies[first] = copies.get(first, 0) + 1  # a copy of a recording
                     for k in frame_counts:
                         result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id,
-                                                   "reason": f"{COPY} {first}"})
+                                                   "reason": REPEAT if first == bag else f"{COPY} {first}"})
                     continue
+                scored = sum(map(len, result.predictions.values()))
                 score_episode(model, bag, instance, frames, frame_counts, result)
+                if sum(map(len, result.predictions.values())) > scored:  # a copy left out of every row claims nothing
+                    scored_from[key] = bag
             if silent := sum(e["reason"] == NO_FRAME for e in result.left_out[frame_counts[0]][before:]):
                 warnings.warn(f"{bag}: {silent} episode(s) left out of every row: {NO_FRAME}")  # one line a bag
+            if repeats:  # one line a bag, as a looping simulator replays every episode
+                warnings.warn(f"{bag}: {repeats} episode(s) left out of every row: {REPEAT} (a looping simulator's "
+                              "later passes replay its episodes; each is scored once)")
             for first, count in copies.items():  # one line a bag, as a whole copied bag would give one an episode
                 warnings.warn(f"{bag}: {count} episode(s) left out of every row: {COPY} {first} (a copy of a "
                               "recording is scored once)")
@@ -274,7 +316,16 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
 
 
 NO_FRAME = "it has no mask frame on the topic"
-COPY = "the same episode (id and seed) was read from"
+COPY = "the same simulation was scored from"
+REPEAT = "the same simulation was scored earlier from this bag"
+
+
+def simulation_key(instance) -> tuple:
+    """What makes two episodes the same simulation: their ground truth but for its stamp and episode index, which a
+    copy of a recording or a looping simulator's replay changes. Episodes of one id and seed that differ otherwise
+    (a parameter sweep of the node's single-instance mode, say) are distinct."""
+    fields = getattr(type(instance), "__slots__", GROUND_TRUTH_FIELDS)
+    return tuple((name, repr(getattr(instance, name, None))) for name in fields if name not in ("header", "episode_index"))
 
 
 def unscorable_ground_truth(instance) -> str:
@@ -295,8 +346,9 @@ def unscorable_ground_truth(instance) -> str:
 
 def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_counts: list[int],
                   result: Evaluation) -> None:
-    """Adds the episode's prediction for each K to `result`. As in the node, rejected frames are
-    skipped; an episode whose window holds fewer than K frame slots is left out of the K row.
+    """Adds the episode's prediction for each K (its first K frame slots, predict_episode) to `result`. As in
+    the node, rejected frames are skipped; an episode whose window holds fewer than K frame slots is left out
+    of the K row.
     Each of these is noted in `result` and warned about, naming the bag and episode."""
     where = f"{bag}: episode {instance.episode_id}"
     if reason := unscorable_ground_truth(instance):  # no ground truth the metrics can score
@@ -330,7 +382,8 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
         return features[key]
 
     try:
-        by_k = {k: predict_episode(model, bag, instance, frames, k, masks=masks, encode=encode) for k in frame_counts}
+        by_k = {k: predict_episode(model, bag, instance, frames, len(frames), masks=masks, encode=encode, slots=k)
+                for k in frame_counts}
     except ValueError as exc:  # e.g. stamps that repeat or go backwards within the episode
         warnings.warn(f"{where}: left out of every row: {exc}")
         by_k, left_out = {}, dict.fromkeys(frame_counts, str(exc))
@@ -338,10 +391,15 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
         left_out = {k: f"its window holds {p.slots} of {k} frame slots"
                     for k, p in by_k.items() if p is not None and p.slots < k}
         if left_out:
-            longest = max(left_out)
+            longest, interval = max(left_out), model.info.frame_interval
+            span = (frames[-1][0] - frames[0][0]) / 1e9
+            start = by_k[longest].oldest_stamp_ns  # slot 0's frame: the episode's first unless the window restarted
+            cause = "the episode is cut short" if start == frames[0][0] else \
+                f"its window restarted at the image size change at stamp {stamp_text(start)}"
             warnings.warn(f"{where}: left out of the K = {', '.join(map(str, left_out))} row(s): fewer frame slots "
-                          f"than K (the K = {longest} window holds {by_k[longest].slots}; {len(frames)} frames "
-                          "accepted: the episode is cut short, or its window restarted)")
+                          f"than K (the K = {longest} window holds {by_k[longest].slots}; its {len(frames)} accepted "
+                          f"frames span {span:.3f} s, slot {longest - 1} lies {(longest - 1) * interval:.3f} s after "
+                          f"the first: {cause})")
     for k, reason in left_out.items():
         result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id, "reason": reason})
     for k, prediction in by_k.items():
@@ -394,7 +452,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--bags", type=Path, nargs="+", required=True,
                         help="bag folders, .mcap files, or folders holding bags (searched recursively)")
     parser.add_argument("--frames", action=metrics.FrameCounts, nargs="*", default=None, metavar="K",
-                        help=f"also evaluate with only the first K frames observed (temporal OOD), e.g. "
+                        help=f"also evaluate with only the first K frames observed (temporal OOD; K frame slots, "
+                             f"K x the model's frame interval, whatever the camera's rate), e.g. "
                              f"--frames 24 18 or --frames 24,18; with no value: "
                              f"{' '.join(map(str, metrics.TEMPORAL_OOD_FRAMES))} (those below the model's frame "
                              "count)")

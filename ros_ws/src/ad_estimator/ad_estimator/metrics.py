@@ -331,10 +331,13 @@ def read_frames_json(path: str | Path, what: str, hint: str) -> dict:
 
 
 def json_text(obj, indent: int = 2) -> str:
-    """Strict JSON (what jq and browsers read): NaN, meaning "no clip qualified", becomes null."""
+    """Strict JSON (what jq and browsers read): NaN, meaning "no clip qualified" (or no value), becomes null, and
+    so does an infinity (say, a model's sigma that overflowed), which JSON has no number for either: it raised
+    ValueError after all the work. Read back, null is NaN (Predictions.from_episodes), which metrics treat as no
+    value, as they do an infinite sigma."""
 
     def clean(value):
-        if isinstance(value, float) and math.isnan(value):
+        if isinstance(value, float) and not math.isfinite(value):
             return None
         if isinstance(value, dict):
             return {k: clean(v) for k, v in value.items()}
