@@ -318,6 +318,43 @@ def test_an_image_size_change_restarts_the_window_as_in_the_node(setup, tmp_path
     assert "Clips: 2;" in (tmp_path / "out" / "report.md").read_text()
 
 
+def test_a_row_ends_with_its_last_slot_whatever_comes_after(setup, tmp_path):
+    """Row K holds the frames up to its last slot: what comes later changes none of its slots, as in the node,
+    whose estimate from them is out by then. An image size change at frame 15 left the K = 15 row (its slots end
+    at frame 14) out; frames 27 and 28 of a 30-frame episode out of order left every row out."""
+    model_path, _ = setup
+    small = falling_masks(seed=3, size=64)[0]
+    bag = write_test_bag(tmp_path / "size", edit_mask=damaged(1, 15, lambda m: m.update(
+        height=64, width=64, step=64, data=small.tobytes())))
+    with pytest.warns(UserWarning, match="left out of the K = 25, 18 row"):
+        assert run_main(model_path, bag, tmp_path / "size_out", "--frames", "18", "15") == 0
+    predictions = json.loads((tmp_path / "size_out" / "predictions.json").read_text())
+    assert [len(predictions["frames"][k]) for k in ("25", "18", "15")] == [2, 2, 3]
+
+    def swapped(index, frame):
+        return messages.frame_stamp(index, {27: 28, 28: 27}.get(frame, frame))
+
+    late = write_test_bag(tmp_path / "late", frames=30, frame_stamp=swapped)
+    assert run_main(model_path, late, tmp_path / "late_out", "--frames", "18") == 0
+    predictions = json.loads((tmp_path / "late_out" / "predictions.json").read_text())
+    assert [len(predictions["frames"][k]) for k in ("25", "18")] == [3, 3] and not predictions["left_out"]["25"]
+
+
+def test_a_copy_fills_the_rows_an_earlier_copy_was_left_out_of(setup, tmp_path):
+    """The first bag's episodes cut at 20 frames (scored in the K = 18 row only), a whole copy in the second: the
+    copy fills the full row and is left out of the K = 18 row. The first copy claimed every row: the full row
+    lost the episodes."""
+    model_path, good = setup
+    write_test_bag(tmp_path / "bags" / "a", frames=20)
+    shutil.copytree(good, tmp_path / "bags" / "b")
+    with pytest.warns(UserWarning):
+        assert run_main(model_path, tmp_path / "bags", tmp_path / "out", "--frames", "18") == 0
+    saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
+    a, b = str(tmp_path / "bags" / "a"), str(tmp_path / "bags" / "b")
+    assert [p["bag"] for p in saved["frames"]["25"]] == [b] * 3 and [p["bag"] for p in saved["frames"]["18"]] == [a] * 3
+    assert [(e["bag"], e["reason"]) for e in saved["left_out"]["18"]] == [(b, f"the same simulation was scored from {a}")] * 3
+
+
 def test_an_episode_cut_short_is_left_out_of_the_rows_it_cannot_fill(setup, tmp_path, capsys):
     model_path, _ = setup
     bag = write_test_bag(tmp_path / "bag", edit_mask=lambda index, k, m: None if index == 2 and k >= 12 else m)
@@ -572,7 +609,8 @@ def test_a_copy_of_a_bag_is_scored_once(setup, tmp_path, capsys):
     with pytest.warns(UserWarning) as caught:
         assert run_main(model, tmp_path / "bags", tmp_path / "out", "--frames", "18") == 0
     first, copy = tmp_path / "bags" / "a", tmp_path / "bags" / "b"
-    assert [str(w.message) for w in caught] == [f"{copy}: 3 episode(s) left out of every row: the same simulation "
+    assert [str(w.message) for w in caught] == [f"{copy}: 3 episode(s) left out of the rows they were scored in: "
+                                                f"the same simulation "
                                                 f"was scored from {first} (a copy of a recording is scored once)"]
     assert "episodes left out of the rows K = 25: 3, K = 18: 3" in capsys.readouterr().out
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())["frames"]
@@ -694,7 +732,7 @@ def test_a_looping_simulators_replayed_episodes_are_scored_once(setup, tmp_path,
         assert run_main(model, looped, tmp_path / "out", "--frames", "18") == 0
     repeat = "the same simulation was scored earlier from this bag"
     assert [str(w.message) for w in caught] == [
-        f"{looped}: 3 episode(s) left out of every row: {repeat} (a looping simulator's later passes replay its "
+        f"{looped}: 3 episode(s) left out of the rows they were scored in: {repeat} (a looping simulator's later passes replay its "
         "episodes; each is scored once)"]
     assert "episodes left out of the rows K = 25: 3, K = 18: 3" in capsys.readouterr().out
     saved = json.loads((tmp_path / "out" / "predictions.json").read_text())
@@ -711,7 +749,7 @@ def test_a_looping_simulators_replayed_episodes_are_scored_once(setup, tmp_path,
     with pytest.warns(UserWarning) as caught:
         assert run_main(model, tmp_path / "bags", tmp_path / "two") == 0
     assert [str(w.message).split(":")[0] for w in caught] == [str(looped), str(tmp_path / "bags" / "zcopy")]
-    assert str(caught[1].message).startswith(f"{tmp_path / 'bags' / 'zcopy'}: 6 episode(s) left out of every row: "
+    assert str(caught[1].message).startswith(f"{tmp_path / 'bags' / 'zcopy'}: 6 episode(s) left out of the rows they were scored in: "
                                              f"the same simulation was scored from {looped}")
     assert len(json.loads((tmp_path / "two" / "predictions.json").read_text())["frames"]["25"]) == 3
 

@@ -9,11 +9,11 @@ them. As in the node, a frame images.py rejects is skipped (with a warning, and 
 and an image size change restarts the window. An episode whose window holds fewer than K frame
 slots (cut short, or restarted) is left out of the K row, and one without a usable mask frame out
 of every row, with a warning; so is one whose ground truth the metrics cannot score (unscorable_ground_truth)
-and one scored before (the same simulation: its ground truth all but its stamp and index), from another bag (a
-copy of a recording) or from the same one (a looping simulator's replay): each is scored once. A bag without ground truth gives no episode (warned, and
-counted); ground truth without a field evaluate reads (another definition of the message) is an error. Metrics
-(SPEC 8) come from ad_estimator.metrics; --frames K adds the temporal out-of-distribution rows (only the first K
-frames observed). Needs no ROS runtime.
+and, in the rows it was scored in, one scored before (the same simulation: simulation_key), from another bag (a
+copy of a recording) or from the same one (a looping simulator's replay): each is scored once a row. A bag
+without ground truth gives no episode (warned, and counted); ground truth without a field evaluate reads (another
+definition of the message) is an error. Metrics (SPEC 8) come from ad_estimator.metrics; --frames K adds the
+temporal out-of-distribution rows (only the first K frame slots observed). Needs no ROS runtime.
 """
 from __future__ import annotations
 
@@ -218,12 +218,15 @@ def predict_episode(model: EstimatorModel, bag: Path, instance, frames, observed
     frames = frames[:observed]
     if not frames:
         return None
+    if slots:  # the frames up to the first at or after the last slot's time: any later one (late, another image
+        # size) changes none of the row's slots, as in the node, whose estimate from them is out by then
+        last = frames[0][0] + (slots - 1) * round(model.info.frame_interval * 1e9)
+        frames = frames[:next((i + 1 for i, (stamp, _) in enumerate(frames) if stamp >= last), len(frames))]
     if masks is None:
         masks = [image_to_mask(image, MAX_IMAGE_PIXELS, model.info.input_threshold()) for _, image in frames]
     # A window of `slots` slots fills its slots as the model's does its first `slots`: the same frames, encoded
-    # with the same earlier ones; its reach (and so its restarts) end with its last slot, as the node's estimate
-    # from that many slots does.
-    out = clip_output([s for s, _ in frames], masks[:observed], encode or model.encode, model.info.frame_interval,
+    # with the same earlier ones.
+    out = clip_output([s for s, _ in frames], masks[:len(frames)], encode or model.encode, model.info.frame_interval,
                       slots or model.info.frame_count, slot_tolerance=slot_tolerance,
                       history=model.info.previous_frames)
     estimate = model.predict(out.features, out.valid)
@@ -274,11 +277,12 @@ def check_scorable(model: EstimatorModel) -> None:
 def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], mask_topic: str = MASK_TOPIC,
              progress: bool = True, recover: bool = False) -> Evaluation:
     """Predictions per number of observed frames (frame slots), every episode of every bag (see score_episode),
-    each distinct simulation (simulation_key) once: a copy in a later bag, or a repeat later in the same bag (a
-    looping simulator's), of an episode scored already is left out of every row, with one warning a bag."""
+    each distinct simulation (simulation_key) once in each row: a copy in a later bag, or a repeat later in the same
+    bag (a looping simulator's), of an episode scored already is left out of the rows it was scored in (it fills
+    those a cut-short first copy did not), with one warning a bag."""
     check_scorable(model)
     result = Evaluation({k: [] for k in frame_counts}, left_out={k: [] for k in frame_counts})
-    scored_from: dict[tuple, Path] = {}  # simulation_key -> the bag it was first scored from
+    scored_from: dict[tuple[tuple, int], Path] = {}  # (simulation_key, K) -> the bag its K row was scored from
     with tqdm(desc="episodes", unit="ep", disable=None if progress else True, file=sys.stderr) as bar:
         for bag in bags:
             before = len(result.left_out[frame_counts[0]])
@@ -288,27 +292,32 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
                                                    result.without_ground_truth):
                 bar.update()
                 key = simulation_key(instance)
-                if (first := scored_from.get(key)) is not None:  # it would count twice: scored once, the first time
+                # A row that holds the simulation already would count it twice: it is scored there once, the first
+                # time; a copy fills only the rows an earlier one was left out of (cut short, say).
+                taken = {k: first for k in frame_counts if (first := scored_from.get((key, k))) is not None}
+                if taken:
+                    first = next(iter(taken.values()))
                     if first == bag:
                         repeats += 1  # a looping simulator's later pass (the same simulation, later stamps)
                     else:
                         copies[first] = copies.get(first, 0) + 1  # a copy of a recording
-                    for k in frame_counts:
+                    for k, first in taken.items():
                         result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id,
                                                    "reason": REPEAT if first == bag else f"{COPY} {first}"})
+                rows = [k for k in frame_counts if k not in taken]
+                if not rows:
                     continue
-                scored = sum(map(len, result.predictions.values()))
-                score_episode(model, bag, instance, frames, frame_counts, result)
-                if sum(map(len, result.predictions.values())) > scored:  # a copy left out of every row claims nothing
-                    scored_from[key] = bag
+                scored = {k: len(result.predictions[k]) for k in rows}
+                score_episode(model, bag, instance, frames, rows, result)
+                scored_from.update({(key, k): bag for k in rows if len(result.predictions[k]) > scored[k]})
             if silent := sum(e["reason"] == NO_FRAME for e in result.left_out[frame_counts[0]][before:]):
                 warnings.warn(f"{bag}: {silent} episode(s) left out of every row: {NO_FRAME}")  # one line a bag
             if repeats:  # one line a bag, as a looping simulator replays every episode
-                warnings.warn(f"{bag}: {repeats} episode(s) left out of every row: {REPEAT} (a looping simulator's "
-                              "later passes replay its episodes; each is scored once)")
+                warnings.warn(f"{bag}: {repeats} episode(s) left out of the rows they were scored in: {REPEAT} (a "
+                              "looping simulator's later passes replay its episodes; each is scored once)")
             for first, count in copies.items():  # one line a bag, as a whole copied bag would give one an episode
-                warnings.warn(f"{bag}: {count} episode(s) left out of every row: {COPY} {first} (a copy of a "
-                              "recording is scored once)")
+                warnings.warn(f"{bag}: {count} episode(s) left out of the rows they were scored in: {COPY} {first} "
+                              "(a copy of a recording is scored once)")
             if str(bag) in result.without_ground_truth:
                 warnings.warn(f"{bag}: no ground truth ({INSTANCE_TYPE} on {INSTANCE_TOPIC}), so no episode: "
                               "nothing in it is scored")
@@ -322,10 +331,12 @@ REPEAT = "the same simulation was scored earlier from this bag"
 
 def simulation_key(instance) -> tuple:
     """What makes two episodes the same simulation: their ground truth but for its stamp and episode index, which a
-    copy of a recording or a looping simulator's replay changes. Episodes of one id and seed that differ otherwise
-    (a parameter sweep of the node's single-instance mode, say) are distinct."""
+    copy of a recording or a looping simulator's replay changes, and its camera poses, whose number is the views
+    recorded (the first views' are the same whatever that number). Episodes of one id and seed that differ
+    otherwise (a parameter sweep of the node's single-instance mode, say) are distinct."""
     fields = getattr(type(instance), "__slots__", GROUND_TRUTH_FIELDS)
-    return tuple((name, repr(getattr(instance, name, None))) for name in fields if name not in ("header", "episode_index"))
+    return tuple((name, repr(getattr(instance, name, None))) for name in fields
+                 if name not in ("header", "episode_index", "camera_poses"))
 
 
 def unscorable_ground_truth(instance) -> str:
@@ -381,25 +392,28 @@ def score_episode(model: EstimatorModel, bag: Path, instance, frames, frame_coun
             features[key] = model.encode(mask, earlier)
         return features[key]
 
-    try:
-        by_k = {k: predict_episode(model, bag, instance, frames, len(frames), masks=masks, encode=encode, slots=k)
-                for k in frame_counts}
-    except ValueError as exc:  # e.g. stamps that repeat or go backwards within the episode
-        warnings.warn(f"{where}: left out of every row: {exc}")
-        by_k, left_out = {}, dict.fromkeys(frame_counts, str(exc))
-    else:
-        left_out = {k: f"its window holds {p.slots} of {k} frame slots"
-                    for k, p in by_k.items() if p is not None and p.slots < k}
-        if left_out:
-            longest, interval = max(left_out), model.info.frame_interval
-            span = (frames[-1][0] - frames[0][0]) / 1e9
-            start = by_k[longest].oldest_stamp_ns  # slot 0's frame: the episode's first unless the window restarted
-            cause = "the episode is cut short" if start == frames[0][0] else \
-                f"its window restarted at the image size change at stamp {stamp_text(start)}"
-            warnings.warn(f"{where}: left out of the K = {', '.join(map(str, left_out))} row(s): fewer frame slots "
-                          f"than K (the K = {longest} window holds {by_k[longest].slots}; its {len(frames)} accepted "
-                          f"frames span {span:.3f} s, slot {longest - 1} lies {(longest - 1) * interval:.3f} s after "
-                          f"the first: {cause})")
+    by_k, refused = {}, {}
+    for k in frame_counts:
+        try:
+            by_k[k] = predict_episode(model, bag, instance, frames, len(frames), masks=masks, encode=encode, slots=k)
+        except ValueError as exc:  # e.g. stamps that repeat or go backwards among the row's frames
+            refused[k] = str(exc)
+    if refused:
+        first = next(iter(refused.values()))
+        warnings.warn(f"{where}: left out of the K = {', '.join(map(str, refused))} row(s): {first}")
+    left_out = {k: f"its window holds {p.slots} of {k} frame slots"
+                for k, p in by_k.items() if p is not None and p.slots < k}
+    if left_out:
+        longest, interval = max(left_out), model.info.frame_interval
+        span = (frames[-1][0] - frames[0][0]) / 1e9
+        start = by_k[longest].oldest_stamp_ns  # slot 0's frame: the episode's first unless the window restarted
+        cause = "the episode is cut short" if start == frames[0][0] else \
+            f"its window restarted at the image size change at stamp {stamp_text(start)}"
+        warnings.warn(f"{where}: left out of the K = {', '.join(map(str, left_out))} row(s): fewer frame slots "
+                      f"than K (the K = {longest} window holds {by_k[longest].slots}; its {len(frames)} accepted "
+                      f"frames span {span:.3f} s, slot {longest - 1} lies {(longest - 1) * interval:.3f} s after "
+                      f"the first: {cause})")
+    left_out.update(refused)
     for k, reason in left_out.items():
         result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id, "reason": reason})
     for k, prediction in by_k.items():
@@ -452,7 +466,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--bags", type=Path, nargs="+", required=True,
                         help="bag folders, .mcap files, or folders holding bags (searched recursively)")
     parser.add_argument("--frames", action=metrics.FrameCounts, nargs="*", default=None, metavar="K",
-                        help=f"also evaluate with only the first K frames observed (temporal OOD; K frame slots, "
+                        help=f"also evaluate with only the first K frame slots observed (temporal OOD; "
                              f"K x the model's frame interval, whatever the camera's rate), e.g. "
                              f"--frames 24 18 or --frames 24,18; with no value: "
                              f"{' '.join(map(str, metrics.TEMPORAL_OOD_FRAMES))} (those below the model's frame "
