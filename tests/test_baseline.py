@@ -201,3 +201,60 @@ def test_observed_videos_with_nan_are_refused_before_the_search(monkeypatch):
     with pytest.raises(ValueError, match=r"finite and in \[0, 1\]"):
         baseline.fit_instances([JELLY], observed, generations=1, popsize=2, progress=False)
     assert batches == []
+
+
+# ---- mutation-testing audit (round 2)
+
+
+def test_cma_es_is_told_the_loss_of_each_point_it_asked_for(monkeypatch):
+    """Each generation, cma's tell gets, for each candidate it asked for, that candidate's own loss (capped
+    at FAILED_LOSS); the start point's loss (generation 0) is the fit's initial loss and is not told. Losses
+    shifted by one (the start point's told in place of the first candidate's) or all raised to the cap
+    passed the other tests."""
+    import cma
+
+    def loss_of(parameters):
+        return abs(math.log(parameters["youngs_modulus"] / 4e5)) + abs(parameters["poissons_ratio"] - 0.3)
+
+    _fake_simulations(monkeypatch, loss_of)
+    told = []
+    real_tell = cma.CMAEvolutionStrategy.tell
+
+    def tell(self, solutions, function_values, *args, **kwargs):
+        told.append((np.array(solutions), list(function_values)))
+        return real_tell(self, solutions, function_values, *args, **kwargs)
+
+    monkeypatch.setattr(cma.CMAEvolutionStrategy, "tell", tell)
+    fit, = baseline.fit_instances([JELLY], np.zeros((1, 3, 2, 2), np.uint8), generations=3, popsize=5,
+                                  progress=False)
+    assert len(told) == 3
+    for solutions, values in told:
+        assert len(solutions) == len(values) == 5
+        expected = [min(loss_of(baseline.from_unit("jelly", s)), baseline.FAILED_LOSS) for s in solutions]
+        np.testing.assert_allclose(values, expected, rtol=1e-6)
+    assert fit.initial_loss == pytest.approx(loss_of(baseline.from_unit("jelly", [0.5, 0.5])), rel=1e-6)
+    best = min(min(loss_of(baseline.from_unit("jelly", s)) for s in solutions) for solutions, _ in told)
+    assert fit.loss == pytest.approx(min(best, fit.initial_loss), rel=1e-6)
+
+
+def test_seconds_per_instance_is_the_batch_time_shared_by_its_instances(monkeypatch):
+    """Instances optimised together share their batch's wall time: 2 instances in a batch that took 10 s
+    are 5 s each (a clock that advances 10 s per reading)."""
+    from types import SimpleNamespace
+
+    _fake_simulations(monkeypatch, lambda parameters: 0.1)
+    readings = iter(range(0, 1000, 10))
+    monkeypatch.setattr(baseline, "time", SimpleNamespace(perf_counter=lambda: float(next(readings))))
+    fits = baseline.fit_instances([JELLY, JELLY], np.zeros((2, 3, 2, 2), np.uint8), generations=1, popsize=2,
+                                  parallel=2, progress=False)
+    assert [fit.seconds for fit in fits] == [5.0, 5.0]
+
+
+def test_each_unit_coordinate_maps_to_its_own_parameter():
+    """Coordinate i is SAMPLED_PARAMETERS[family][i]: (0, 1) is jelly's lowest E with its highest nu (points with
+    equal coordinates, as the other test uses, cannot tell a swap)."""
+    (e_low, _, _), (_, nu_high, _) = (FAMILY_RANGES["jelly"][n] for n in ("youngs_modulus", "poissons_ratio"))
+    assert baseline.from_unit("jelly", [0.0, 1.0]) == pytest.approx({"youngs_modulus": e_low, "poissons_ratio": nu_high})
+    plasticine = baseline.from_unit("plasticine", [1.0, 0.5, 0.0])
+    assert plasticine["youngs_modulus"] == pytest.approx(FAMILY_RANGES["plasticine"]["youngs_modulus"][1])
+    assert plasticine["yield_stress"] == pytest.approx(FAMILY_RANGES["plasticine"]["yield_stress"][0])

@@ -216,3 +216,19 @@ def test_every_run_says_how_many_clips_it_scored_and_a_mismatch_is_said(tmp_path
     assert f"scored different numbers of clips** (450, {REAL['frames']['25']['n']})" in md
     assert main(["compare", "--group", f"A={same}", "--group", f"B={same}", "--out", str(tmp_path / "same")]) == 0
     assert "different numbers of clips" not in (tmp_path / "same" / "compare.md").read_text()
+
+
+# ---- mutation-testing audit (round 2)
+
+
+def test_a_run_tied_with_the_best_run_of_another_group_is_not_below_it(tmp_path):
+    """"first runs below every run" counts the reference's runs strictly below the other group's best: a run
+    equal to it is not below it (0.160 against a group whose best run is 0.160)."""
+    files_a = [_metrics(tmp_path / "a0.json", 0.150), _metrics(tmp_path / "a1.json", 0.160)]
+    files_b = [_metrics(tmp_path / "b0.json", 0.160), _metrics(tmp_path / "b1.json", 0.170)]
+    out = tmp_path / "out"
+    assert main(["compare", "--group", "A=" + ",".join(map(str, files_a)), "--group", "B=" + ",".join(map(str, files_b)),
+                 "--out", str(out)]) == 0
+    (difference,) = json.loads((out / "compare.json").read_text())["differences"]
+    assert difference["first_runs_below_every_run"] == 1 and difference["first_runs"] == 2
+    assert "1 of 2 A runs are below every B run" in (out / "compare.md").read_text()

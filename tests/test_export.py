@@ -272,3 +272,41 @@ def test_an_out_that_would_overwrite_the_checkpoint_is_refused(tmp_path, capsys)
         assert line.startswith(f"python -m training export: --out {out} would write ") and "is the checkpoint" in line
         assert checkpoint.read_bytes() == weights and sorted(p.name for p in tmp_path.iterdir()) == listing
         assert not any((tmp_path / "sub").iterdir())
+
+
+# ---- mutation-testing audit (round 2)
+
+
+def test_verification_compares_every_output_with_torch(tmp_path, monkeypatch):
+    """verify_export fails when any one of the three outputs differs from torch (logits, params or
+    params_logvar), not only the first."""
+    import onnxruntime as ort
+
+    from training.export import OUTPUTS
+
+    ckpt, _ = _checkpoint(tmp_path, "uniformer")
+    out = tmp_path / "student.onnx"
+    export_student(ckpt, out)
+    assert verify_export(ckpt, out) < 1e-4
+    real_run = ort.InferenceSession.run
+    for k in range(len(OUTPUTS)):
+        def run(self, names, feeds, *args, _k=k, **kwargs):
+            got = real_run(self, names, feeds, *args, **kwargs)
+            if names == OUTPUTS:
+                got[_k] = got[_k] + 1e-2  # this output alone is off by 1e-2
+            return got
+
+        monkeypatch.setattr(ort.InferenceSession, "run", run)
+        with pytest.raises(RuntimeError, match="differs from torch by 1.00e-02"):
+            verify_export(ckpt, out)
+
+
+def test_the_metrics_file_records_the_last_epoch_of_the_history(tmp_path):
+    """The fresh metrics JSON beside the export holds the checkpoint's final epoch: the history's last entry."""
+    ckpt, _ = _checkpoint(tmp_path, "uniformer")
+    history = [{"epoch": 1, "val_loss": 0.9}, {"epoch": 2, "val_loss": 0.5}, {"epoch": 3, "val_loss": 0.4}]
+    (tmp_path / "history.json").write_text(json.dumps(history))
+    export_student(ckpt, tmp_path / "m" / "student.onnx")
+    record = json.loads((tmp_path / "m" / "student.metrics.json").read_text())
+    assert record["final_epoch"] == {"epoch": 3, "val_loss": 0.4}
+    assert record["model"] == "student.onnx"

@@ -129,3 +129,48 @@ def test_node_conversion_rejects_unknown_fields():
 
     with pytest.raises(AttributeError):
         to_ros_message(messages.IMAGE_TYPE, {"no_such_field": 1})
+
+
+# ---- mutation-testing audit (round 2)
+
+
+def test_instance_message_carries_the_initial_state_and_camera_positions():
+    """The ground truth's initial pose, velocity and camera poses are the episode's, field by field (only the
+    camera orientations were checked: camera positions, the velocity's axes, the object's orientation and the
+    gravity's sign could be wrong without a failing test)."""
+    episode = fabricated_episode(7, views=3, material="jelly")
+    _, _, instance = next(messages.episode_messages(episode, 0))
+    for pose, camera in zip(instance["camera_poses"], episode.cameras, strict=True):
+        p, q = pose["position"], pose["orientation"]
+        np.testing.assert_array_equal([p["x"], p["y"], p["z"]], camera.pose[:3, 3])
+        np.testing.assert_allclose(quaternion_matrix((q["x"], q["y"], q["z"], q["w"])), camera.pose[:3, :3], atol=1e-12)
+    initial = instance["initial_pose"]
+    p, q = initial["position"], initial["orientation"]
+    np.testing.assert_array_equal([p["x"], p["y"], p["z"]], episode.instance.position())
+    np.testing.assert_array_equal([q["x"], q["y"], q["z"], q["w"]], episode.instance.orientation)
+    linear, angular = instance["initial_velocity"]["linear"], instance["initial_velocity"]["angular"]
+    np.testing.assert_array_equal([linear["x"], linear["y"], linear["z"]], episode.instance.velocity)
+    assert angular == {"x": 0.0, "y": 0.0, "z": 0.0}
+    # Settings: gravity is the magnitude along -z in m/s^2 (positive), frames 25 ms apart, a 32^3 grid.
+    assert instance["gravity"] == 9.8 and instance["frame_interval"] == 0.025 and instance["grid_resolution"] == 32
+    assert instance["scale"] == 0.4 and instance["density"] == materials.DENSITY
+    assert instance["particle_count"] == episode.particle_count
+
+
+def test_header_stamp_of_encoded_messages_in_either_byte_order():
+    """rosbag.header_stamp_ns reads the stamp after the 4-byte CDR encapsulation, whose second byte is the byte
+    order (1: little endian): a mask message stamped 3.000000025 s gives 3_000_000_025 ns, as does its
+    big-endian encoding; a nanosec of 1e9 or more is no time (999_999_999 is)."""
+    import struct
+
+    from ad_sim.rosbag import header_stamp_ns
+
+    stamp = 3_000_000_025
+    message = messages.mask_message(np.zeros((2, 2), np.uint8), stamp, "ad_sim/view_0")
+    schema = load_schema(messages.IMAGE_TYPE)
+    encoded = serialize_dynamic(messages.IMAGE_TYPE, schema.definition)[messages.IMAGE_TYPE](message)
+    assert encoded[:2] == b"\x00\x01" and header_stamp_ns(encoded) == stamp
+    assert header_stamp_ns(b"\x00\x00\x00\x00" + struct.pack(">iI", 3, 25)) == stamp
+    assert header_stamp_ns(b"\x00\x01\x00\x00" + struct.pack("<iI", 7, 999_999_999)) == 7_999_999_999
+    with pytest.raises(ValueError, match="cannot be a log time"):
+        header_stamp_ns(b"\x00\x01\x00\x00" + struct.pack("<iI", 7, 1_000_000_000))

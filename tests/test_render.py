@@ -231,3 +231,40 @@ def test_vertex_advection_follows_particles():
     rows = np.unique(np.r_[binding.indices.ravel(), [0, 1, 2]])
     subset = render.advect_vertices(binding.reindexed(rows), still[:, rows], identity[:, rows])
     np.testing.assert_allclose(subset, np.broadcast_to(vertices, (frames, 60, 3)), atol=1e-6)
+
+
+# ---- mutation-testing audit (round 2)
+
+
+def test_binding_weights_are_inverse_distance_by_hand():
+    """A vertex at distances 1, 2, 4 and 8 from its four nearest particles: weights 1/d normalised,
+    i.e. 8/15, 4/15, 2/15, 1/15 (a 1/d^2 weighting passed every other test: any normalised weights do)."""
+    particles = np.array([[1.0, 0, 0], [0, 2.0, 0], [0, 0, 4.0], [8.0, 0, 0], [0, 20.0, 0]])
+    binding = render.bind_vertices(np.zeros((1, 3)), particles)
+    order = np.argsort(binding.indices[0])
+    np.testing.assert_array_equal(binding.indices[0][order], [0, 1, 2, 3])
+    np.testing.assert_allclose(binding.weights[0][order], np.array([8, 4, 2, 1]) / 15, rtol=1e-12)
+    np.testing.assert_allclose(binding.offsets[0][order], -particles[:4], rtol=1e-12)
+
+
+def test_resizing_to_another_aspect_scales_each_axis_by_its_own_factor():
+    """u' = (u + 0.5) sx - 0.5 and v' = (v + 0.5) sy - 0.5 for a resize to a non-square image (every other
+    resize in the tests is square, where sx = sy hides a swapped factor)."""
+    camera = render.sample_cameras(np.random.default_rng(7), 1)[0]  # 128 x 128
+    wide = camera.resized(256, 64)
+    assert (wide.width, wide.height) == (256, 64)
+    points = np.random.default_rng(8).uniform(0.2, 0.8, size=(10, 3))
+    u, v = camera.project(points).T
+    np.testing.assert_allclose(wide.project(points), np.c_[(u + 0.5) * 2 - 0.5, (v + 0.5) * 0.5 - 0.5], atol=1e-9)
+
+
+def test_a_quad_over_the_whole_image_covers_every_pixel_edges_included():
+    """Two triangles whose projection spans beyond the image on every side: every pixel of the 512x512 mask,
+    the last row and column included, is covered (the bounding box is clipped to the image, not short of it)."""
+    camera = Camera(K=intrinsics(FULL, FULL, np.deg2rad(20.0)), width=FULL, height=FULL,
+                    pose=look_at(np.array([0.5, -1.5, 0.5]), np.array([0.5, 0.5, 0.5])))
+    # A square in the plane y = 0.5 that is much wider than the field of view there.
+    vertices = np.array([[-3.0, 0.5, -3.0], [4.0, 0.5, -3.0], [4.0, 0.5, 4.0], [-3.0, 0.5, 4.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    small, full = render.render_masks([vertices], [faces], [RenderJob(0, 0, camera.projection())], full=True)
+    assert (full[0] == 255).all() and (small[0] == 255).all()

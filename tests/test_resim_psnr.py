@@ -208,3 +208,20 @@ def test_a_negative_subset_size_is_refused(tmp_path, capsys):
         resim_psnr.build_parser().parse_args(["--model", "m.onnx", "--bags", str(tmp_path), "--instances", "-3"])
     assert exit_info.value.code == 2  # was: every episode, as for 0
     assert "argument --instances: expected a whole number >= 0, got '-3'" in capsys.readouterr().err
+
+
+# ---- mutation-testing audit (round 2)
+
+
+def test_summary_per_family_is_a_mean_and_exact_counts_only_the_cap():
+    """Per true family the summary is the mean of its instances' PSNRs (three sand values whose median differs
+    from their mean), and only PSNR_CAP (identical videos) counts as reproduced to the pixel: one wrong pixel
+    (~56 dB) or a value just below the cap does not."""
+    one_pixel = 10 * np.log10(25 * 128 * 128)
+    psnr = np.array([10.0, 20.0, 60.0, one_pixel, PSNR_CAP - 0.01, PSNR_CAP])
+    summary = resim_psnr.psnr_summary(["sand", "sand", "sand", "jelly", "jelly", "plasticine"], psnr)
+    assert summary["families"]["sand"] == pytest.approx(30.0)
+    assert summary["families"]["jelly"] == pytest.approx((one_pixel + PSNR_CAP - 0.01) / 2)
+    assert summary["families"]["plasticine"] == PSNR_CAP
+    assert summary["exact"] == 1
+    assert summary["mean"] == pytest.approx(psnr.mean()) and summary["median"] == pytest.approx((60.0 + one_pixel) / 2)

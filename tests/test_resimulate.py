@@ -93,3 +93,35 @@ def test_resimulate_renders_the_requested_view_and_checks_its_inputs():
         resimulate([instance], [])
     with pytest.raises(ValueError, match="unphysical"):
         resimulate([instance], [("jelly", {"youngs_modulus": -1.0, "poissons_ratio": 0.3})])
+
+
+# ---- mutation-testing audit (round 2)
+
+
+def test_parameters_below_a_range_are_clipped_up_to_its_low_end():
+    """clip_to_family_range clips at both ends: only the upper end was tested (nu 0.45 -> 0.40)."""
+    from ad_sim.materials import FAMILY_RANGES
+    from ad_sim.resimulate import clip_to_family_range
+
+    (e_low, e_high, _), (nu_low, nu_high, _) = (FAMILY_RANGES["jelly"][n] for n in ("youngs_modulus", "poissons_ratio"))
+    assert clip_to_family_range("jelly", {"youngs_modulus": e_low / 10, "poissons_ratio": -0.2}) == {
+        "youngs_modulus": e_low, "poissons_ratio": nu_low}
+    assert clip_to_family_range("jelly", {"youngs_modulus": e_high * 10, "poissons_ratio": 0.49}) == {
+        "youngs_modulus": e_high, "poissons_ratio": nu_high}
+    phi_low = FAMILY_RANGES["sand"]["friction_angle"][0]
+    assert clip_to_family_range("sand", {"friction_angle": phi_low / 2})["friction_angle"] == phi_low
+    inside = {"youngs_modulus": math.sqrt(e_low * e_high), "poissons_ratio": (nu_low + nu_high) / 2}
+    assert clip_to_family_range("jelly", inside) == inside
+
+
+def test_mse_of_grey_float_masks_squares_the_differences():
+    """Float masks in [0, 1] (grey levels) are accepted: the MSE squares each difference, so a video at 0.5
+    against one at 0 has MSE 0.25 (PSNR 10 log10 4), not 0.5 (an absolute error is the same only for 0/1 masks)."""
+    from ad_sim.resimulate import mask_mse
+
+    grey, black = np.full((25, 8, 8), 0.5, np.float32), np.zeros((25, 8, 8), np.float32)
+    assert mask_mse(grey, black) == pytest.approx(0.25)
+    assert mask_psnr(grey, black) == pytest.approx(10 * math.log10(4.0))
+    quarter = black.copy()
+    quarter[:, :4, :4] = 0.25  # a quarter of the pixels off by 0.25
+    assert mask_mse(quarter, black) == pytest.approx(0.25 * 0.25**2)
