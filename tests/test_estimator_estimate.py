@@ -160,6 +160,9 @@ def test_a_pause_in_the_recording_flushes_the_window_as_the_nodes_idle_flush_doe
     assert [r["frames_used"] for r in read_csv(tmp_path / "b.csv")] == ["10", "15", "20", "25"]
     assert run(model, bag, *anytime, "--idle-flush", "1.0", "--out", tmp_path / "c.csv") == 0
     assert [r["frames_used"] for r in read_csv(tmp_path / "c.csv")] == ["10", "15", "20", "25"]
+    # a pause just over idle_flush is enough (one of 0.8 s against 0.5 s flushes; a mutant took twice idle_flush)
+    assert run(model, bag, *anytime, "--idle-flush", "0.5", "--out", tmp_path / "d.csv") == 0
+    assert [r["frames_used"] for r in read_csv(tmp_path / "d.csv")] == ["10", "13", "18", "23", "25"]
 
 
 def test_the_nodes_window_and_image_parameters_apply(setup, tmp_path):

@@ -1038,3 +1038,18 @@ def test_a_chunk_written_by_a_topic_added_later_is_not_counted_lost(tmp_path, mo
         recovered = list(BagReader(tmp_path / "bag", recover=True, raw=True))
     assert len(recovered) == count + 11 == writer.message_count
     assert writer.lost == {"/q": 1}
+
+
+def test_distinct_episodes_keeps_the_last_of_one_episode_and_passes_over_others_at_one_stamp():
+    """At one stamp, ground truth of one episode (id and seed) received twice is that episode, with the frames
+    (which all went to the last); episodes of one id but another seed there cannot be told apart."""
+    from types import SimpleNamespace as NS
+
+    from ad_sim.rosbag import BagEpisode, distinct_episodes
+
+    a1 = BagEpisode(NS(episode_id="a", seed=1), 0)
+    a2 = BagEpisode(NS(episode_id="a", seed=1), 0, {"/m": [(0, "f")]})
+    b1, b2 = BagEpisode(NS(episode_id="b", seed=2), 5), BagEpisode(NS(episode_id="b", seed=3), 5)
+    groups = []
+    assert list(distinct_episodes([a1, a2, b1, b2], lambda group, reason: groups.append(group))) == [a2]
+    assert groups == [[b1, b2]]
