@@ -822,36 +822,26 @@ def test_signals_in_a_row_through_the_shutdown_exit_cleanly(model_paths, ros_dom
     assert out.count("shutting down") == 1, out
 
 
-def test_ctrl_c_while_starting_exits_quietly_as_any_ctrl_c(model_paths, ros_domain_id, tmp_path):
+@pytest.mark.parametrize("executable", ["node", "replay"])
+def test_ctrl_c_while_starting_exits_quietly_as_any_ctrl_c(executable, model_paths, ros_domain_id, tmp_path):
     """A Ctrl-C during the node's imports (most of its first second, before it handles signals) printed Python's
     KeyboardInterrupt traceback, and the process died of the signal. Wherever it lands before the node is up, the
-    node now exits with status 0 as after any Ctrl-C, with one line if it came during the imports."""
+    node now exits with status 0 as after any Ctrl-C, with one line if it came during the imports. So does
+    replay, an rclpy executable too, during its imports."""
+    if executable == "node":
+        args = ["--ros-args", "-p", f"model_path:={model_paths['streaming']}", "-r", "mask:=/estimator_test/interrupted"]
+        delays, said = (0.0, 0.0, 0.05, 0.15, 0.3, 0.6, 1.0, 2.0), "ad_estimator: interrupted while starting"
+    else:
+        args = [str(REPO_ROOT / "bags" / "samples" / "unseen-masks-0of1")]
+        delays, said = (0.0, 0.0, 0.05), "replay: interrupted while starting"
     during_imports = 0
     try:
-        for attempt, delay in enumerate((0.0, 0.0, 0.05, 0.15, 0.3, 0.6, 1.0, 2.0)):
-            args = [str(ADRUN), "ad_estimator", "node", "--ros-args", "-p", f"model_path:={model_paths['streaming']}",
-                    "-r", "mask:=/estimator_test/interrupted"]
-            status, lines = interrupt_while_starting(args, tmp_path / f"{attempt}.log", delay)
-            text = "\n".join(lines)
-            assert status == 0 and "Traceback" not in text and "KeyboardInterrupt" not in text, (delay, text)
-            during_imports += lines == ["ad_estimator: interrupted while starting"]
-    finally:
-        kill_leftovers()
-    assert during_imports, "no Ctrl-C landed during the imports"
-
-
-def test_ctrl_c_while_replay_starts_exits_quietly(ros_domain_id, tmp_path):
-    """replay is an rclpy executable too: a Ctrl-C during its imports printed Python's traceback. It now exits with
-    status 0, as replay does after any Ctrl-C, and one line."""
-    bag = REPO_ROOT / "bags" / "samples" / "unseen-masks-0of1"
-    during_imports = 0
-    try:
-        for attempt, delay in enumerate((0.0, 0.0, 0.05)):
-            status, lines = interrupt_while_starting([str(ADRUN), "ad_estimator", "replay", str(bag)],
+        for attempt, delay in enumerate(delays):
+            status, lines = interrupt_while_starting([str(ADRUN), "ad_estimator", executable, *args],
                                                      tmp_path / f"{attempt}.log", delay)
             text = "\n".join(lines)
             assert status == 0 and "Traceback" not in text and "KeyboardInterrupt" not in text, (delay, text)
-            during_imports += lines == ["replay: interrupted while starting"]
+            during_imports += lines == [said]
     finally:
         kill_leftovers()
     assert during_imports, "no Ctrl-C landed during the imports"
