@@ -130,6 +130,14 @@ def test_split_by_size_and_read_back_across_files(tmp_path):
     assert all(f.stat().st_size < 300_000 + 200_000 for f in files)
     read = list(BagReader(path, raw=True))
     assert [(t, s) for t, s, _ in read] == [(t, s) for t, s, _ in written]
+    # what `ros2 bag info` shows: the bag's and each file's first log time and span
+    stamps = sorted(s for _, s, _ in written)
+    assert info["starting_time"]["nanoseconds_since_epoch"] == stamps[0]
+    assert info["duration"]["nanoseconds"] == stamps[-1] - stamps[0]
+    for entry, file in zip(info["files"], files):
+        own = [m.log_time_ns for m in BagReader(file, raw=True)]
+        assert entry["starting_time"]["nanoseconds_since_epoch"] == min(own)
+        assert entry["duration"]["nanoseconds"] == max(own) - min(own)
 
 
 def test_split_files_exceed_max_bag_size_by_at_most_a_small_chunk(tmp_path):
