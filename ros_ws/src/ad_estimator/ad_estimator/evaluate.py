@@ -286,24 +286,24 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
     with tqdm(desc="episodes", unit="ep", disable=None if progress else True, file=sys.stderr) as bar:
         for bag in bags:
             before = len(result.left_out[frame_counts[0]])
-            copies: dict[Path, int] = {}  # episodes read before, per bag they were read from
-            repeats = 0  # episodes read before from this bag
+            copies: dict[Path, int] = {}  # episodes scored before, per bag they were scored from
+            repeats = 0  # episodes scored before from this bag
             for instance, frames in episode_frames(bag, mask_topic, recover, result.source_problems,
                                                    result.without_ground_truth):
                 bar.update()
                 key = simulation_key(instance)
                 # A row that holds the simulation already would count it twice: it is scored there once, the first
                 # time; a copy fills only the rows an earlier one was left out of (cut short, say).
-                taken = {k: first for k in frame_counts if (first := scored_from.get((key, k))) is not None}
+                taken = {k: source for k in frame_counts if (source := scored_from.get((key, k))) is not None}
                 if taken:
                     first = next(iter(taken.values()))
                     if first == bag:
                         repeats += 1  # a looping simulator's later pass (the same simulation, later stamps)
                     else:
                         copies[first] = copies.get(first, 0) + 1  # a copy of a recording
-                    for k, first in taken.items():
+                    for k, source in taken.items():
                         result.left_out[k].append({"bag": str(bag), "episode_id": instance.episode_id,
-                                                   "reason": REPEAT if first == bag else f"{COPY} {first}"})
+                                                   "reason": REPEAT if source == bag else f"{COPY} {source}"})
                 rows = [k for k in frame_counts if k not in taken]
                 if not rows:
                     continue
