@@ -333,6 +333,7 @@ def test_a_simulation_failure_plays_what_was_simulated_then_exits_1(ros_domain_i
 
 
 COUNTING_SIMULATION = """
+import os
 import sys
 import ad_sim.episode
 import ad_sim.sim_node
@@ -341,7 +342,8 @@ real = ad_sim.episode.simulate_batch
 
 def simulate_batch(instances, *args, **kwargs):
     for instance in instances:
-        print(f"simulating {instance.episode_id}", flush=True)
+        # One write per line: print writes the newline apart, and a log line from another thread came between.
+        os.write(1, f"simulating {instance.episode_id}\\n".encode())
     return real(instances, *args, **kwargs)
 
 ad_sim.episode.simulate_batch = simulate_batch
