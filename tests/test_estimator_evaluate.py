@@ -88,6 +88,29 @@ def test_training_evaluate_reports_calibration_too(setup, tmp_path, capsys):
     assert "## Uncertainty calibration (25 frames)" in (tmp_path / "out" / "report.md").read_text()
 
 
+def test_training_evaluate_scores_a_looping_simulators_repeats_once(setup, tmp_path):
+    """`python -m training evaluate` on a recording of a looping simulator scored each episode once a pass
+    (as `ros2 run ad_estimator evaluate` no longer does): the same scores as one pass, and n counts episodes."""
+    from ad_sim.generate import write_episodes
+    from ad_sim.rosbag import BagWriter
+    from training import evaluate as training_evaluate
+    from training.synthetic import synthetic_episode
+
+    model, _ = setup
+    episodes = [synthetic_episode(i, 12, 1, "unseen") for i in range(4)]
+    for name, passes in (("once", 1), ("looped", 2)):
+        with BagWriter(tmp_path / name / "bag") as writer:
+            for p in range(passes):
+                write_episodes(writer, episodes, p * len(episodes))
+        training_evaluate.evaluate_model(model, tmp_path / name, tmp_path / "cache", tmp_path / f"{name}_out",
+                                         progress=False, frames=(25,), record=False)
+    once, looped = (json.loads((tmp_path / f"{name}_out" / "metrics.json").read_text())
+                    for name in ("once", "looped"))
+    assert looped["frames"] == once["frames"] and once["frames"]["25"]["n"] == 4
+    saved = json.loads((tmp_path / "looped_out" / "predictions.json").read_text())
+    assert saved["episodes"] == 4 and len(saved["frames"]["25"]) == 4
+
+
 def test_training_evaluate_that_cannot_write_leaves_the_earlier_report_whole(setup, tmp_path):
     """`python -m training evaluate` and `report` write their reports in a staging folder, moved in once
     complete: under a file size limit that stops them at the plots, the earlier report is as it was."""

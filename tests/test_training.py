@@ -607,6 +607,28 @@ def test_evaluate_teacher_writes_the_papers_table(bags, teacher_ckpt, tmp_path, 
     assert "RegL1" in capsys.readouterr().out
 
 
+def test_the_teacher_scores_a_looping_simulators_repeats_once(teacher_ckpt, tmp_path):
+    """evaluate-teacher (and pipeline's teacher summary) scored every repeat of a looping simulator's recording,
+    where the students' evaluation scores each episode once: the same predictions as one pass now."""
+    from ad_estimator.metrics import compute_metrics
+    from ad_sim.generate import write_episodes
+    from ad_sim.rosbag import BagWriter
+    from training.synthetic import synthetic_episode
+    from training.train_teacher import load_teacher, teacher_predictions
+
+    episodes = [synthetic_episode(i, 5, 1, "unseen") for i in range(4)]
+    scored = {}
+    for name, passes in (("once", 1), ("looped", 3)):
+        with BagWriter(tmp_path / name / "bag") as writer:
+            for p in range(passes):
+                write_episodes(writer, episodes, p * len(episodes))
+        ds = data.load_dataset(tmp_path / name, tmp_path / "cache", progress=False)
+        scored[name] = teacher_predictions(load_teacher(teacher_ckpt), ds, "cpu", batch_size=3)
+    assert scored["looped"].episode_ids == scored["once"].episode_ids == [e.instance.episode_id for e in episodes]
+    np.testing.assert_allclose(scored["looped"].pred_params, scored["once"].pred_params, rtol=1e-5)
+    assert compute_metrics(scored["looped"])["n"] == 4
+
+
 def test_checkpoint_errors_are_one_clear_line(bags, teacher_ckpt, tmp_path, capsys):
     from training.__main__ import main
 

@@ -360,7 +360,10 @@ def test_an_episode_in_two_bags_is_never_on_both_sides_of_the_split(tmp_path, ca
     ids = np.array(ds.episode_ids)
     for seed in range(8):
         train, val = ds.split(0.3, seed)
-        assert len(train) + len(val) == len(ds) and len(val) and not set(ids[train]) & set(ids[val]), seed
+        assert len(val) and not set(ids[train]) & set(ids[val]), seed
+        first = set(ds.first_copies().tolist())  # validation scores each episode once; training keeps each copy
+        assert set(val.tolist()) <= first and first <= set(train.tolist()) | set(val.tolist()), seed
+        assert set(train.tolist()) == {i for i in range(len(ds)) if ids[i] not in set(ids[val])}, seed
     # Distinct episodes split as before (a run resumed across this change keeps its validation set).
     for seed in range(3):
         keyed = data.split_instances(40, 0.2, seed, keys=[("e", i) for i in range(40)])
@@ -382,6 +385,45 @@ def test_episodes_in_several_bags_are_warned_about(tmp_path, caplog):
     assert warning.startswith(f"2 episode(s) under {tmp_path / 'bags'} are in more than one bag (e.g. "
                               f"{synthetic_episode(0, 1, 1).instance.episode_id}, in {tmp_path / 'bags' / 'generated'} "
                               f"and {tmp_path / 'bags' / 'recorded'})")
+
+
+def test_a_looping_simulators_repeats_are_warned_about_and_evaluated_once(tmp_path, caplog):
+    """A recording of the simulator node with loop: true holds each episode once a pass, the same simulation
+    with later stamps. Nothing said so: each repeat was trained on, and validation and `python -m training
+    evaluate` scored it once a pass. Now one warning names an episode and its bag, training keeps the repeats
+    on its side of the split, and validation and first_copies (what evaluation scores) hold each episode once."""
+    episodes = [synthetic_episode(i, 1, 1) for i in range(3)]
+    with BagWriter(tmp_path / "bags" / "looped") as writer:
+        for first in (0, 3, 6):  # three passes
+            write_episodes(writer, episodes, first)
+    with caplog.at_level(logging.WARNING, logger="training.data"):
+        ds = data.load_dataset(tmp_path / "bags", tmp_path / "cache", progress=False)
+    assert len(ds) == 9
+    (warning,) = [m for m in caplog.messages if "repeat" in m]
+    assert warning.startswith(f"3 episode(s) under {tmp_path / 'bags'} repeat within a bag (e.g. "
+                              f"{episodes[0].instance.episode_id}, 3 times in {tmp_path / 'bags' / 'looped'}): "
+                              "a looping simulator (loop: true) was recorded"), warning
+    np.testing.assert_array_equal(ds.first_copies(), [0, 1, 2])
+    ids = np.array(ds.episode_ids)
+    for seed in range(6):
+        train, val = ds.split(0.3, seed)
+        assert len(train) == 6 and len(val) == 1 and not set(ids[train]) & set(ids[val]), seed
+
+
+def test_a_parameter_sweep_of_one_id_and_seed_is_distinct_episodes(tmp_path, caplog):
+    """The simulator node's single-instance mode names every episode custom-<shape>-<material>-0000 with
+    the seed given, so a stiffness sweep is one bag per Young's modulus, all of one id and seed: distinct
+    simulations, which neither warn as copies nor are left out as repeats."""
+    for e in (2e4, 2e5, 2e6):
+        episode = synthetic_episode(0, 1, 1)
+        episode.instance.parameters = {**episode.instance.parameters, "youngs_modulus": e}
+        with BagWriter(tmp_path / "bags" / f"E{e:.0e}") as writer:
+            write_episodes(writer, [episode], 0)
+    with caplog.at_level(logging.WARNING, logger="training.data"):
+        ds = data.load_dataset(tmp_path / "bags", tmp_path / "cache", progress=False)
+    assert not caplog.messages and len(set(ds.episode_keys())) == 3
+    np.testing.assert_array_equal(ds.first_copies(), [0, 1, 2])
+    assert sorted(ds.params_si[:, PARAMETER_NAMES.index("youngs_modulus")]) == [2e4, 2e5, 2e6]
 
 
 def test_resized_videos_are_area_averaged(bags, tmp_path):

@@ -369,16 +369,20 @@ class Dataset:
             text += f", per instance {hashlib.sha256(' '.join(per_instance).encode()).hexdigest()[:12]}"
         return text
 
-    def episode_keys(self) -> list[tuple[str, int]]:
-        """Per instance, which simulated episode it is (its id and seed, as `fingerprint` names it): the
-        same for an episode found in two bags (say, regenerated with another shard count, or repaired
-        beside the original)."""
-        return list(zip(self.meta["episode_id"], self.meta["seed"]))
+    def episode_keys(self) -> list[tuple]:
+        """Per instance, which simulation it is: its id and seed (as `fingerprint` names it), shape, family and
+        parameters. The same for an episode found in two bags (say, regenerated with another shard count, or
+        repaired beside the original) or replayed by a looping simulator; not for a sweep of one id and seed over
+        parameters (the simulator node's single-instance mode), whose episodes are distinct simulations."""
+        return [(*key, self.params_si[i].tobytes()) for i, key in enumerate(
+            zip(self.meta["episode_id"], self.meta["seed"], self.meta["shape"], self.meta["material"]))]
 
     def split(self, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """The train/validation split of these instances (split_instances), every copy of an episode on
-        one side: with a copy on each, validation would score episodes the model trained on."""
-        return split_instances(len(self), val_fraction, seed, self.episode_keys())
+        one side: with a copy on each, validation would score episodes the model trained on. Training
+        keeps every copy; validation scores each episode once, as evaluation does (first_copies)."""
+        train, val = split_instances(len(self), val_fraction, seed, self.episode_keys())
+        return train, val[np.isin(val, self.first_copies())]
 
     def test_split_warning(self, bags) -> str | None:
         """A warning when these training instances include benchmark test instances (a --bags that
@@ -419,11 +423,20 @@ class Dataset:
         """Indices of every video of the given instances."""
         return np.flatnonzero(np.isin(self.video_instance, instances))
 
+    def first_copies(self) -> np.ndarray:
+        """Indices of the instances that are the first copy of their episode (episode_keys): a looping
+        simulator's replays and a second recording's copies left out, so that each episode is scored once."""
+        first: dict = {}
+        for i, key in enumerate(self.episode_keys()):
+            first.setdefault(key, i)
+        return np.array(sorted(first.values()), dtype=np.int64)
+
     def first_view_videos(self, instances: np.ndarray | None = None) -> np.ndarray:
         """One video per instance (its lowest view), the evaluation convention."""
+        wanted = None if instances is None else set(np.asarray(instances).tolist())
         pick = {}
-        for j, (i, v) in enumerate(zip(self.video_instance, self.video_view)):
-            if (instances is None or i in instances) and (i not in pick or v < self.video_view[pick[i]]):
+        for j, (i, v) in enumerate(zip(self.video_instance.tolist(), self.video_view.tolist())):
+            if (wanted is None or i in wanted) and (i not in pick or v < self.video_view[pick[i]]):
                 pick[int(i)] = j
         return np.array([pick[i] for i in sorted(pick)], dtype=np.int64)
 
@@ -469,20 +482,29 @@ def load_dataset(bags: str | Path, cache_dir: str | Path, progress: bool = True,
                          f"({particles_topic()}), which bags generated with --skip-particles lack (evaluate those "
                          f"with `ros2 run ad_estimator evaluate`)")
     dataset = Dataset(shards, problems)
-    _warn_of_episodes_in_several_bags(dataset, sources, bags)
+    _warn_of_repeated_episodes(dataset, sources, bags)
     return dataset
 
 
-def _warn_of_episodes_in_several_bags(dataset: Dataset, sources: list[Path], bags) -> None:
-    """One warning if an episode (its id and seed) is in more than one of the bags read (say, a split recorded
-    through topics and generated as well, under one --bags): each copy is trained on and scored."""
+def _warn_of_repeated_episodes(dataset: Dataset, sources: list[Path], bags) -> None:
+    """One warning if an episode (the same simulation: episode_keys) is in more than one of the bags read (say,
+    a split recorded through topics and generated as well, under one --bags), and one if an episode repeats
+    within a bag (a looping simulator recorded): each copy is trained on; evaluation scores each once."""
     shards_of: dict = {}
     for (s, _), key in zip(dataset._inst_loc, dataset.episode_keys()):
-        shards_of.setdefault(key, set()).add(s)
-    if several := [key for key, shards in shards_of.items() if len(shards) > 1]:
+        shards_of.setdefault(key, []).append(s)
+    if several := [key for key, shards in shards_of.items() if len(set(shards)) > 1]:
         log.warning("%d episode(s) under %s are in more than one bag (e.g. %s, in %s): each copy counts in training "
-                    "(on one side of the validation split) and in evaluation; keep one bag of each", len(several), bags,
-                    several[0][0], " and ".join(str(sources[s]) for s in sorted(shards_of[several[0]])))
+                    "(validation and evaluation score it once); keep one bag of each",
+                    len(several), bags, several[0][0],
+                    " and ".join(str(sources[s]) for s in sorted(set(shards_of[several[0]]))))
+    if repeated := [key for key, shards in shards_of.items() if len(set(shards)) < len(shards)]:
+        shards = shards_of[repeated[0]]
+        bag = next(s for s in shards if shards.count(s) > 1)
+        log.warning("%d episode(s) under %s repeat within a bag (e.g. %s, %d times in %s): a looping simulator "
+                    "(loop: true) was recorded, and each repeat counts in training (validation and evaluation score it "
+                    "once); record one pass", len(repeated), bags, repeated[0][0],
+                    shards.count(bag), sources[bag])
 
 
 def split_instances(n: int, val_fraction: float, seed: int, keys=None) -> tuple[np.ndarray, np.ndarray]:

@@ -28,9 +28,10 @@ FRAMES_SCORED = tuple(sorted({FRAME_COUNT, *TEMPORAL_OOD_FRAMES, *range(10, FRAM
 
 def predict_dataset(model: EstimatorModel, ds: data.Dataset, frames=FRAMES_SCORED,
                     progress: bool = True) -> dict[int, Predictions]:
-    """Predictions for every observed-prefix length in `frames`, one clip per instance: its first
-    max(frames) frames (the model's frame count where it takes fewer than the clips hold)."""
-    videos = ds.first_view_videos()
+    """Predictions for every observed-prefix length in `frames`, one clip per episode (a repeat or copy
+    of an episode scored once): its first max(frames) frames (the model's frame count where it takes
+    fewer than the clips hold)."""
+    videos = ds.first_view_videos(ds.first_copies())
     probs = {k: [] for k in frames}
     params = {k: [] for k in frames}
     sigmas = {k: [] for k in frames}
@@ -86,19 +87,20 @@ def evaluate_model(model_path: str | Path, bags: str | Path, cache: str | Path, 
         read_model_metrics(model_path)  # a corrupt file fails now, not after the evaluation
     ds = data.load_dataset(bags, cache, progress=progress, coverage=model.info.mask_levels == "coverage")
     by_frames = predict_dataset(model, ds, frames, progress=progress)
+    episodes = len(by_frames[full].episode_ids)
     title = title or f"{model.model_id} on {bags}"
     if out is None:
         out = Path(model_path).with_suffix("").with_name(Path(model_path).stem + "_eval")
     results = write_evaluation(by_frames, out, title, {"model_id": model.model_id, "model_path": str(model_path),
-                                                        "episodes": len(ds), "source_problems": ds.problems})
+                                                        "episodes": episodes, "source_problems": ds.problems})
     if record:
-        entry = {**summary(results), "episodes": len(ds)} | ({"source_problems": ds.problems} if ds.problems else {})
+        entry = {**summary(results), "episodes": episodes} | ({"source_problems": ds.problems} if ds.problems else {})
         print(f"recorded in {update_model_metrics(model_path, {'evaluation': {Path(bags).name: entry}})}")
     print_results(results, title, out)
     if warning := ds.train_split_warning(bags):
         print(warning, file=sys.stderr)
     if ds.problems:
-        print(f"warning: only {len(ds)} complete episodes under {bags} were scored; {len(ds.problems)} problem(s) "
+        print(f"warning: only {episodes} complete episodes under {bags} were scored; {len(ds.problems)} problem(s) "
               f"in the bags are listed above and in predictions.json (masks-only bags, from --skip-particles, are "
               f"scored by `ros2 run ad_estimator evaluate`)", file=sys.stderr)
     return results

@@ -125,11 +125,13 @@ def load_teacher(path: str | Path, device="cpu") -> Teacher:
 
 
 @torch.no_grad()
-def _teacher_outputs(teacher: Teacher, ds: data.Dataset, device, batch_size: int):
-    """The frozen teacher's outputs (eval mode, no augmentation), a batch of instances at a time, in order."""
-    for start in range(0, len(ds), batch_size):
-        idx = range(start, min(len(ds), start + batch_size))
-        yield teacher(torch.from_numpy(np.stack([ds.trajectory(i) for i in idx])).to(device))
+def _teacher_outputs(teacher: Teacher, ds: data.Dataset, device, batch_size: int, instances=None):
+    """The frozen teacher's outputs (eval mode, no augmentation), a batch of instances at a time, in order
+    (`instances`: these indices, default all)."""
+    instances = range(len(ds)) if instances is None else instances
+    for start in range(0, len(instances), batch_size):
+        idx = instances[start:start + batch_size]
+        yield teacher(torch.from_numpy(np.stack([ds.trajectory(int(i)) for i in idx])).to(device))
 
 
 def teacher_targets(teacher: Teacher, ds: data.Dataset, device, batch_size: int = 16) -> np.ndarray:
@@ -139,14 +141,17 @@ def teacher_targets(teacher: Teacher, ds: data.Dataset, device, batch_size: int 
 
 
 def teacher_predictions(teacher: Teacher, ds: data.Dataset, device, batch_size: int = 16) -> Predictions:
-    """The teacher's estimates for every instance of ds, as metrics.Predictions (SI parameters)."""
+    """The teacher's estimates for each episode of ds once (a repeat or copy scored once, as the students'
+    evaluation does), as metrics.Predictions (SI parameters)."""
+    scored = ds.first_copies()
     probs, params = [], []
-    for out in _teacher_outputs(teacher, ds, device, batch_size):
+    for out in _teacher_outputs(teacher, ds, device, batch_size, scored):
         probs.append(torch.softmax(out["logits"].float(), -1).cpu().numpy())
         params.append(out["params"].float().clamp(0, 1).cpu().numpy())
     normalised = np.concatenate(params)
     si = np.stack([denormalise(n, normalised[:, j]) for j, n in enumerate(PARAMETER_NAMES)], axis=1)
-    return Predictions(ds.labels, ds.params_si, np.concatenate(probs), si, list(ds.episode_ids))
+    return Predictions(ds.labels[scored], ds.params_si[scored], np.concatenate(probs), si,
+                       [ds.episode_ids[i] for i in scored])
 
 
 def add_common_args(p: argparse.ArgumentParser, epochs: int, batch_size: int, lr: float = 1e-4) -> None:
