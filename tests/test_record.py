@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import signal
 import time
+import warnings
 
 import pytest
 from mcap.reader import make_reader
@@ -91,6 +92,16 @@ def test_recorder_records_everything_and_finalises_on_sigint(rclpy_context, ros_
         assert all(m.publish_time > 1.6e18 and m.log_time < 1e10 for _, _, m in reader.iter_messages())
 
 
+def flushed(bag) -> int:
+    """How many messages a recorder still writing `bag` has flushed (what a kill -9 now would leave readable)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # truncated, as a bag being written is
+        try:
+            return len(list(BagReader(bag, recover=True, raw=True)))
+        except BagError:  # no chunk yet
+            return 0
+
+
 def test_sigterm_finalises_and_kill9_keeps_flushed_chunks(rclpy_context, ros_domain_id, tmp_path):
     items = episode_items()
     publisher = Publisher(rclpy_context)
@@ -100,7 +111,12 @@ def test_sigterm_finalises_and_kill9_keeps_flushed_chunks(rclpy_context, ros_dom
         publisher.wait_for_subscribers(count=2)
         published = publisher.publish(items)
         publisher.sim.wait_for_acks()
-        time.sleep(1.0)  # > flush_period: everything received is in flushed chunks
+        # Killed once everything received is in flushed chunks (flush_period 0.2 s), as read back the way a kill -9
+        # leaves the bag: acknowledged is not yet written, and a fixed second assumed a recorder that keeps up.
+        deadline = time.monotonic() + 60
+        while flushed(tmp_path / "kill") < published:
+            assert time.monotonic() < deadline, (tmp_path / "kill.log").read_text()
+            time.sleep(0.1)
         killed.send_signal(signal.SIGKILL)
         killed.wait(10)
         assert stop(terminated, signal.SIGTERM) == 0
@@ -130,7 +146,8 @@ def test_recorder_records_only_the_topics_asked_for(rclpy_context, ros_domain_id
         for topic in topics:
             wait_for_log(tmp_path / "r.log", rf"subscribed to {topic} ", recorder)
         deadline = time.monotonic() + 30
-        while chatter.get_subscription_count() < 1 or publisher.sim.by_topic["/ad_sim/particles"][1].get_subscription_count() < 1:
+        while chatter.get_subscription_count() < 1 or any(publisher.sim.by_topic[topic][1].get_subscription_count() < 1
+                                                          for topic in topics[:2]):
             assert time.monotonic() < deadline
             time.sleep(0.05)
         before = time.time_ns()
@@ -304,6 +321,10 @@ def test_a_second_simulator_run_into_one_recording_is_warned_about(rclpy_context
     try:
         recorder = start("record", ros_domain_id, tmp_path / "r.log", output=str(tmp_path / "bag"))
         wait_for_log(tmp_path / "r.log", r"subscribed to /ad_sim/instance ", recorder)
+        deadline = time.monotonic() + 30  # this side matched too: wait_for_all_acked waits on no one before
+        while truth.get_subscription_count() < 1:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
         for sec in (0, 1, 0, 1):  # episodes 0 and 1 of one run, then of another
             message = SimInstance(episode_id=f"e{sec}")
             message.header.stamp.sec = sec

@@ -109,10 +109,11 @@ def test_pacing_and_clean_shutdown(rclpy_context, ros_domain_id, tmp_path):
     from sensor_msgs.msg import PointCloud2
 
     listener = Node("listener", context=rclpy_context)
-    arrivals = []
+    arrivals = []  # (stamp, wall time the node published it: DDS's source timestamp, not when this test got to it)
     listener.create_subscription(
         PointCloud2, "/ad_sim/particles",
-        lambda msg: arrivals.append((msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, time.monotonic())),
+        lambda msg, info: arrivals.append((msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9,
+                                           info["source_timestamp"] * 1e-9)),
         QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
     )
     executor = SingleThreadedExecutor(context=rclpy_context)
@@ -276,13 +277,15 @@ def test_a_stop_between_episodes_publishes_nothing_ahead_of_its_time(rclpy_conte
     instance_file.write_text(yaml.safe_dump([dict(soft, seed=3), dict(soft, seed=4)]))
     listener, executor, received = a_listener(rclpy_context)
     try:
-        node = start("node", ros_domain_id, tmp_path / "node.log", instances=str(instance_file), real_time_factor=1.0,
+        # real_time_factor 0.25: the gap before episode 1 lasts 3.6 s of wall time (0.9 s at 1.0), so that a busy
+        # machine's delay in delivering episode 0 to this listener and in seeing it cannot push the stop past it.
+        node = start("node", ros_domain_id, tmp_path / "node.log", instances=str(instance_file), real_time_factor=0.25,
                      batch=2, wait_for_subscribers=1)  # both episodes simulated before the first is played
         deadline = time.monotonic() + 120
         while sum(topic.endswith("particles") for topic, _ in received) < 25:  # episode 0 played whole
             assert time.monotonic() < deadline, (tmp_path / "node.log").read_text()
             executor.spin_once(timeout_sec=0.01)
-        assert stop(node, signal.SIGINT) == 0  # within the 0.9 s gap before episode 1
+        assert stop(node, signal.SIGINT) == 0  # within the gap before episode 1
         end = time.monotonic() + 1.0
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
@@ -437,8 +440,18 @@ def test_ctrl_c_while_starting_exits_quietly_as_any_ctrl_c(executable, ros_domai
 def test_ctrl_c_does_not_wait_for_a_recorder_that_died(rclpy_context, ros_domain_id, tmp_path):
     """A subscriber killed while the node waits for its acknowledgements: SIGINT still ends the node
     within about a second, not after ACK_TIMEOUT (10 s) per topic."""
+    # Two quick episodes, both simulated in the first batch and replayed by the later passes: the node never stops
+    # to simulate, so wherever the kill lands it soon waits on the dead recorder (the ground truth's depth 1 makes
+    # each episode's first message wait for the one before). With the benchmark's batches of 4 it played episodes 1
+    # to 3 within ~80 ms of "episode 1:"; a kill that came later found it simulating the next batch for seconds, and
+    # SIGINT ended that wait with no episode cut short. qos_depth 999 (no multiple of an episode's 25 frames) keeps
+    # the flow-control waits off an episode's last message, after which the episode would count as played whole.
+    soft = {"shape": "sphere", "material": "jelly", "parameters": {"youngs_modulus": 2.0e4, "poissons_ratio": 0.3}}
+    instance_file = tmp_path / "soft.yaml"
+    instance_file.write_text(yaml.safe_dump([dict(soft, seed=3), dict(soft, seed=4)]))
     recorder = start("record", ros_domain_id, tmp_path / "record.log", output=str(tmp_path / "bag"))
-    node = start("node", ros_domain_id, tmp_path / "node.log", real_time_factor=0, loop=True, wait_for_subscribers=1)
+    node = start("node", ros_domain_id, tmp_path / "node.log", instances=str(instance_file), real_time_factor=0,
+                 loop=True, wait_for_subscribers=1, qos_depth=999)
     wait_for_log(tmp_path / "node.log", r"episode 1:", node, timeout=120)
     recorder.send_signal(signal.SIGKILL)
     recorder.wait()
