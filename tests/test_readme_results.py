@@ -399,6 +399,49 @@ def test_estimator_doc_framing_table_is_the_benchmarks_file():
                              f"{against['regl1_between_estimates']:.3f}"]
 
 
+ZOOM = RESULTS / "experiments" / "framing_zoom"
+
+
+def zoom_cameras() -> dict[str, tuple[dict, dict]]:
+    """Per camera of camera_resolution.py: (result, against the simulator's masks) of the shipped model's and the
+    --zoom 0.35 student's runs of section 20, by model."""
+    runs = {name: json.loads((ZOOM / f"camera_{name}.json").read_text()) for name in ("shipped", "zoom35")}
+    return {name: {camera: (result, run["against_simulator_masks"].get(camera, {}))
+                   for camera, result in run["results"].items()} for name, run in runs.items()}
+
+
+def test_estimator_doc_zoom_table_is_section_20s_files():
+    runs = zoom_cameras()
+    rows = {cells(line)[0]: cells(line)[1:] for line in (ROOT / "docs" / "estimator.md").read_text().splitlines()
+            if line.startswith("| framed ")}
+    for label, camera in (("framed as in training", "128x128 (simulator)"), ("framed 1.33x larger", CAMERAS[0]),
+                          ("framed 0.8x smaller", CAMERAS[1])):
+        (shipped, _), (zoom, against) = runs["shipped"][camera], runs["zoom35"][camera]
+        between = [f"{against[k]:.3f}" for k in ("same_family", "regl1_between_estimates")] if against else ["", ""]
+        assert rows[label] == [f"{shipped['regl1']:.3f}", f"{zoom['regl1']:.3f}", *between], label
+
+
+def test_experiments_section_20_tables_are_the_saved_runs():
+    """Section 20: the unseen row is the --zoom 0.35 report, the no-zoom mean is section 8's and 17's three
+    seeds, and the camera table is both models' camera_resolution.py runs."""
+    rows = section_rows(20)
+    assert rows["without alignment, `--zoom 0.35`"] == measured(ZOOM / "zoom35_unseen.json")
+    seeds = [RESULTS / "ablation_earlier3_reg2_none_20ep_unseen.json",
+             *(RESULTS / "experiments" / "averaging" / f"n{i}_unseen.json" for i in (1, 2))]
+    mean = np.mean([json.loads(f.read_text())["frames"]["25"]["regl1"] for f in seeds])
+    assert rows["without alignment, no zoom (3 seeds, mean RegL1)"] == [""] * 9 + [f"{mean:.3f}"]
+    runs = zoom_cameras()
+    for label, camera in (("128x128 (the simulator's masks)", "128x128 (simulator)"),
+                          ("512x384 (4:3)", "512x384 camera (4:3)"), *((c, c) for c in CAMERAS)):
+        expected = []
+        for name in ("shipped", "zoom35"):
+            result, against = runs[name][camera]
+            expected += [f"{result['regl1']:.3f}", f"{against['regl1_between_estimates']:.3f}" if against else ""]
+        assert rows[label] == expected, label
+    assert f"Validation RegL1 at epoch 20: {epoch_rows('framing_zoom/zoom35.history.json')[-1]['val_regl1']:.3f}" in \
+        (RESULTS / "experiments" / "README.md").read_text()
+
+
 def test_experiments_section_14_fit_table_is_the_histories():
     """Section 14: each run's fit (the selected epoch by SPEC's score, training and validation at the end and at
     that epoch) is its history, and its unseen RegL1 its metrics file."""
