@@ -176,7 +176,8 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
                    help="augmentation: shift each training clip by up to PX pixels in x and y (default 0: off)")
     p.add_argument("--zoom", type=fraction, default=0.0, metavar="FRAC",
                    help="augmentation: zoom each training clip by a factor in [1 - FRAC, 1 + FRAC] about the image "
-                        "centre (default 0: off; the rendered cameras' distances span about +-14%%)")
+                        "centre (default 0: off; the rendered cameras' distances span about +-14%%; 0.35 makes the "
+                        "student tolerate cameras framed 0.8x to 1.33x the simulator's, training/README.md)")
     p.add_argument("--full-clips", action="store_true",
                    help="train on full 25-frame clips only (default: streaming students see random prefixes)")
     return p
