@@ -52,7 +52,9 @@ from ad_sim.rosbag import BagError, BagReader, BagUnreadable, distinct_episodes,
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 3  # 2: meta.json records source_problems; 3: episodes sharing a start stamp are left out (distinct_episodes)
+# 2: meta.json records source_problems; 3: episodes sharing a start stamp are left out (distinct_episodes); 4: so is
+# a parameter sweep recorded into one bag (one id and seed, runs stamped alike), no longer taken for one episode.
+CACHE_VERSION = 4
 MASK_TOPIC = re.compile(r"^/ad_sim/view_(\d+)/mask$")
 _HASH_BLOCK = 1 << 20
 RESIZE_SLICE_FRAMES = 4096  # frames resized per slice by resized_videos (64 MB of 128x128 masks)

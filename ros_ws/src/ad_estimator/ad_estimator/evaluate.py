@@ -36,7 +36,7 @@ from ad_estimator.model import BUNDLED_MODEL, EstimatorModel, ModelError
 from ad_estimator.parameters import DEFAULT_INPUT_TOPIC
 from ad_estimator.window import DEFAULT_SLOT_TOLERANCE, clip_output, stamp_to_ns
 from ad_sim import messages
-from ad_sim.rosbag import BagError, BagReader, distinct_episodes, group_episodes, one_line_warnings
+from ad_sim.rosbag import BagError, BagReader, distinct_episodes, group_episodes, one_line_warnings, simulation_key
 
 INSTANCE_TOPIC = messages.instance_topic()
 INSTANCE_TYPE = messages.INSTANCE_TYPE
@@ -327,16 +327,6 @@ def evaluate(model: EstimatorModel, bags: list[Path], frame_counts: list[int], m
 NO_FRAME = "it has no mask frame on the topic"
 COPY = "the same simulation was scored from"
 REPEAT = "the same simulation was scored earlier from this bag"
-
-
-def simulation_key(instance) -> tuple:
-    """What makes two episodes the same simulation: their ground truth but for its stamp and episode index, which a
-    copy of a recording or a looping simulator's replay changes, and its camera poses, whose number is the views
-    recorded (the first views' are the same whatever that number). Episodes of one id and seed that differ
-    otherwise (a parameter sweep of the node's single-instance mode, say) are distinct."""
-    fields = getattr(type(instance), "__slots__", GROUND_TRUTH_FIELDS)
-    return tuple((name, repr(getattr(instance, name, None))) for name in fields
-                 if name not in ("header", "episode_index", "camera_poses"))
 
 
 def unscorable_ground_truth(instance) -> str:

@@ -1166,15 +1166,30 @@ def group_episodes(messages: Iterable[BagMessage], instance_topic: str = "/ad_si
         yield current
 
 
+#: The ground truth's fields that name a simulation, for a ground truth without a generated message class.
+SIMULATION_FIELDS = ("episode_id", "seed", "shape", "material", "parameter_names", "parameters")
+
+
+def simulation_key(instance) -> tuple:
+    """What makes two episodes the same simulation: their ground truth but for its stamp and episode index, which a
+    copy of a recording or a looping simulator's replay changes, and its camera poses, whose number is the views
+    recorded (the first views' are the same whatever that number). Episodes of one id and seed that differ
+    otherwise (a parameter sweep of the node's single-instance mode, say) are distinct."""
+    fields = getattr(type(instance), "__slots__", SIMULATION_FIELDS)
+    return tuple((name, repr(getattr(instance, name, None))) for name in fields
+                 if name not in ("header", "episode_index", "camera_poses"))
+
+
 def distinct_episodes(episodes: Iterable[BagEpisode], collided) -> Iterator[BagEpisode]:
     """group_episodes' episodes but those that start at the stamp of another episode: the frames of all of
     them went to the last, mixed with its own, and which is whose cannot be told (a recording of several
     simulator runs, each stamping its episodes from 0 s). Each such group is passed to `collided(group,
-    reason)` instead. Where a group is all one episode (the same id and seed: a run recorded twice, a ground
-    truth received twice), the last, which holds its frames, is that episode."""
+    reason)` instead. Where a group is all one simulation (the same id, seed, shape, family and parameters: a run
+    recorded twice, a ground truth received twice), the last, which holds its frames, is that episode; runs of one
+    id and seed with other parameters (a sweep of the node's single-instance mode) are distinct."""
     for stamp, same in itertools.groupby(episodes, key=lambda ep: ep.stamp_ns):
         same = list(same)
-        if len({(ep.instance.episode_id, int(ep.instance.seed)) for ep in same}) == 1:
+        if len({simulation_key(ep.instance) for ep in same}) == 1:
             yield same[-1]
             continue
         collided(same, f"episodes {', '.join(ep.instance.episode_id for ep in same)} start at the same stamp "
