@@ -553,20 +553,31 @@ def test_validation_shares_count_every_sample_once_over_the_ranks(size, world):
         assert sorted(i for share in shares for i in share) == list(range(size))
 
 
-def test_ddp_two_processes_gloo(bags, teacher_ckpt, tmp_path):
-    """torchrun --nproc_per_node=2 -m training student: both ranks train, rank 0 checkpoints."""
+@pytest.mark.parametrize("ablation", ["full", "align_only"])
+def test_ddp_two_processes_gloo(bags, teacher_ckpt, tmp_path, ablation):
+    """torchrun --nproc_per_node=2 -m training student: both ranks train, rank 0 checkpoints, and the validation
+    figures it logs (which pick best.pt) are over the whole validation set, both ranks' shares reduced.
+    align_only as well, as scripts/gpu_train.sh runs it: the teacher's predictor it keeps must be frozen, not
+    merely left without gradients (DDP then fails at the second step, waiting for their reduction)."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
     out = tmp_path / "ddp"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "training",
            "student", "--bags", str(bags), "--cache", str(tmp_path / "cache"), "--out", str(out), "--size", "tiny",
-           "--epochs", "1", "--batch-size", "4", "--teacher", str(teacher_ckpt), "--device", "cpu", "--no-progress"]
+           "--epochs", "1", "--batch-size", "4", "--teacher", str(teacher_ckpt), "--device", "cpu", "--no-progress",
+           "--val-fraction", "0.3", "--ablation", ablation]  # 3 validation instances: 2 on one rank, 1 on the other
     result = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     state = torch.load(out / engine.LAST, weights_only=True)
     assert state["epoch"] == 1
     # One log line per epoch (rank 0 only).
-    assert result.stdout.count("student[streaming,full] epoch=1") + result.stderr.count(
-        "student[streaming,full] epoch=1") == 1
+    assert result.stdout.count(f"student[streaming,{ablation}] epoch=1") + result.stderr.count(
+        f"student[streaming,{ablation}] epoch=1") == 1
+    expected = _student_validation(bags, tmp_path / "cache", out, teacher_ckpt, 0.3, 0, 0.5, 0.1, 0.2, ablation)
+    for key, value in expected.items():
+        assert state["history"][0][f"val_{key}"] == pytest.approx(value, rel=1e-5, abs=1e-7), key
+    if ablation == "align_only":  # predictions come from the teacher's predictor, as it was
+        teacher = torch.load(teacher_ckpt, weights_only=True)["model"]
+        assert torch.equal(state["model"]["temporal.heads.predictor.cls.weight"], teacher["heads.predictor.cls.weight"])
 
 
 def test_ddp_teacher_with_trajectories_on_device_stops_and_resumes(bags, tmp_path):
@@ -583,6 +594,41 @@ def test_ddp_teacher_with_trajectories_on_device_stops_and_resumes(bags, tmp_pat
         assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
         assert torch.load(out / engine.LAST, weights_only=True)["epoch"] == epoch
         assert (result.stdout + result.stderr).count(f"teacher epoch={epoch}") == 1
+
+
+_RANK_AFTER_FIT = """
+import os, sys, torch
+from pathlib import Path
+from training import engine
+rt = engine.init_runtime("cpu")
+samples = [{"x": torch.randn(4), "y": torch.randn(1)} for _ in range(8)]
+def loss_fn(net, batch, train):
+    loss = ((net(batch["x"]) - batch["y"]) ** 2).mean()
+    return loss, {"score": loss.detach()}
+engine.fit(torch.nn.Linear(4, 1), samples, None, loss_fn, Path(sys.argv[1]) / str(rt.rank),
+           engine.FitConfig(epochs=1, batch_size=2, progress=False), rt, meta={})
+engine.close_runtime()
+print(f"rank {rt.rank} threads:", sorted(open(f"/proc/self/task/{t}/comm").read().strip()
+                                          for t in os.listdir("/proc/self/task")), flush=True)
+"""
+
+
+def test_a_rank_ends_its_process_group_threads_before_it_exits(tmp_path):
+    """A CI run once saw a rank abort at exit after training and saving ("terminate called without an active
+    exception", exit 1 from torchrun): DistributedDataParallel imported torch._dynamo after the process group
+    existed, which then kept it alive past close_runtime, so gloo's threads were torn down at exit. After
+    close_runtime a rank that trained under DDP must have no gloo thread left."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
+    script = tmp_path / "rank.py"
+    script.write_text(_RANK_AFTER_FIT)
+    result = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+                             str(script), str(tmp_path)], cwd=REPO, env=env, capture_output=True, text=True,
+                            timeout=240)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    lines = [line for line in result.stdout.splitlines() if " threads: " in line]
+    assert sorted(line.split(" threads:")[0] for line in lines) == ["rank 0", "rank 1"], result.stdout
+    for line in lines:
+        assert "gloo" not in line, line
 
 
 def test_evaluate_teacher_writes_the_papers_table(bags, teacher_ckpt, tmp_path, capsys):
@@ -917,3 +963,401 @@ def test_fit_schedules_the_learning_rate_over_all_its_steps(tmp_path):
             return 1e-2 * (step + 1) / 4
         return 1e-4 + (1e-2 - 1e-4) * (1 + np.cos(np.pi * (step - 4) / 12)) / 2
     assert [r["lr"] for r in history] == pytest.approx([expected(4 * e - 1) for e in (1, 2, 3, 4)], rel=1e-9)
+
+
+# --------------------------------------------------------------------------- mutation audit of the training stages
+
+
+class _Numbered(torch.utils.data.Dataset):
+    """Samples 0..n-1 for engine.fit, remembering the epochs that fit announces (VideoSet and TrajectorySet draw
+    their prefixes, mirrors and symmetries from the epoch it sets)."""
+
+    def __init__(self, n: int, target: float = 1.0):
+        generator = torch.Generator().manual_seed(n)
+        self.x, self.y = torch.randn(n, 4, generator=generator), torch.full((n, 1), target)
+        self.y += torch.randn(n, 1, generator=generator) * abs(target)  # unlike targets: batch means != sample means
+        self.epochs = []
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def __getitem__(self, k: int) -> dict:
+        return {"i": torch.tensor(k), "x": self.x[k], "y": self.y[k]}
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epochs.append(epoch)
+
+
+def _mlp() -> torch.nn.Module:
+    return torch.nn.Sequential(torch.nn.Linear(4, 16), torch.nn.ReLU(), torch.nn.Dropout(0.5), torch.nn.Linear(16, 1))
+
+
+def _toy_fit(out, train, val, make=_mlp, seen=None, **cfg):
+    """engine.fit of a seeded `make()` (default: a small MLP with dropout) on `train`, validated on `val`; `seen`
+    collects each training batch's sample numbers. Returns fit's result and the trained model."""
+    torch.manual_seed(0)
+    model = make()
+
+    def loss_fn(net, batch, train):
+        if train and seen is not None:
+            seen.append(batch["i"].tolist())
+        loss = ((net(batch["x"]) - batch["y"]) ** 2).mean()
+        return loss, {"score": loss.detach(), "regl1": loss.detach()}
+
+    config = engine.FitConfig(**{"epochs": 3, "batch_size": 4, "lr": 1e-2, "progress": False, **cfg})
+    return engine.fit(model, train, val, loss_fn, out, config, engine.Runtime(0, 1, torch.device("cpu")), meta={}), model
+
+
+def test_fit_shuffles_every_epoch_from_the_seed_and_tells_the_dataset_the_epoch(tmp_path):
+    """Training batches are drawn in a new order each epoch, from --seed, and a resumed run draws the orders
+    an uninterrupted one would. Batches in the same order every epoch (no set_epoch), in file order (no
+    shuffle) or whatever the seed (a fixed one) train a different model than the recipe says, silently; a
+    dataset never told the epoch repeats its augmentation (the same prefixes, mirrors and symmetries) forever."""
+    def orders(out, seed, **cfg):
+        seen, samples = [], _Numbered(12)
+        _toy_fit(out, samples, None, seen=seen, seed=seed, **cfg)
+        return [sum(seen[k:k + 3], []) for k in range(0, len(seen), 3)], samples.epochs  # 3 batches an epoch
+
+    reference, told = orders(tmp_path / "ref", seed=0)
+    assert told == [0, 1, 2]
+    assert all(sorted(order) == list(range(12)) for order in reference)  # every sample once an epoch
+    assert len({tuple(order) for order in reference}) == 3, "the same order in two epochs"
+    assert all(order != sorted(order) for order in reference), "not shuffled"
+    assert orders(tmp_path / "seed1", seed=1)[0] != reference, "the order does not follow the seed"
+    first, _ = orders(tmp_path / "resumed", seed=0, stop_after=1)
+    rest, told = orders(tmp_path / "resumed", seed=0)
+    assert first + rest == reference and told == [1, 2]
+
+
+def test_validation_figures_are_the_eval_mode_mean_over_every_sample(tmp_path):
+    """The validation loss picks best.pt: it is the model's loss in eval mode (no dropout noise in it), averaged
+    over the samples, not over batches (5 samples in batches of 2: a mean of the batch means would weigh the
+    last batch's one sample as much as each other batch's two)."""
+    train, val = _Numbered(8), _Numbered(5, target=-4.0)
+    history = _toy_fit(tmp_path, train, val, batch_size=2, epochs=1)[0]["history"]
+    model = _mlp()
+    model.load_state_dict(engine.load_checkpoint(tmp_path / engine.LAST)["model"])
+    with torch.no_grad():
+        per_sample = ((model.eval()(val.x) - val.y) ** 2).flatten()
+    assert history[0]["val_loss"] == pytest.approx(per_sample.mean().item(), rel=1e-6)
+
+
+def test_best_checkpoint_survives_a_resume_and_stop_after_never_passes_the_epochs(tmp_path):
+    """Training toward targets opposite to the validation ones makes epoch 1 the best. A run stopped after it and
+    resumed must keep that best.pt (not overwrite it with a worse later epoch because it forgot the best score),
+    and end where the uninterrupted run ends; --stop-after larger than the epochs left stops at --epochs."""
+    def run(out, **cfg):
+        return _toy_fit(out, _Numbered(8, target=3.0), _Numbered(4, target=-3.0), make=lambda: torch.nn.Linear(4, 1),
+                        lr=0.05, **cfg)[0]
+
+    history = run(tmp_path / "ref")["history"]
+    assert [r["val_score"] for r in history] == sorted(r["val_score"] for r in history), "epoch 1 is not the best"
+    run(tmp_path / "resumed", stop_after=1)
+    run(tmp_path / "resumed", stop_after=5)  # two epochs were left
+    ref, resumed = (engine.load_checkpoint(tmp_path / name / engine.BEST) for name in ("ref", "resumed"))
+    assert ref["epoch"] == resumed["epoch"] == 1
+    for key, value in ref["model"].items():
+        torch.testing.assert_close(resumed["model"][key], value, rtol=0, atol=0)
+    last = engine.load_checkpoint(tmp_path / "resumed" / engine.LAST)
+    assert last["epoch"] == 3 and len(last["history"]) == 3 and last["best"] == pytest.approx(history[0]["val_score"])
+
+
+def test_amp_is_cuda_only_a_cpu_run_trains_in_float32(tmp_path):
+    """--amp (bfloat16 autocast) is documented for CUDA only: on the CPU the run is the float32 run, bit for bit,
+    not a silently lower-precision one."""
+    weights = [_toy_fit(tmp_path / str(amp), _Numbered(8), None, amp=amp, epochs=1)[1].state_dict() for amp in (False, True)]
+    for key, value in weights[0].items():
+        torch.testing.assert_close(weights[1][key], value, rtol=0, atol=0)
+
+
+def test_each_update_is_adamw_on_the_gradient_clipped_to_grad_clip(tmp_path):
+    """fit clips the gradient norm to grad_clip (1.0) before each AdamW step, on the cosine schedule, which
+    keeps a bad batch from throwing the weights far; here every gradient is far above that norm, and a run
+    without the clipping ends elsewhere. The steps are repeated by hand."""
+    torch.manual_seed(0)
+    x, y = torch.randn(1, 4) * 30, torch.tensor([[50.0]])  # gradients far above norm 1
+    samples = [{"x": x[0], "y": y[0]}]
+
+    def loss_fn(net, batch, train):
+        loss = ((net(batch["x"]) - batch["y"]) ** 2).mean()
+        return loss, {"score": loss.detach()}
+
+    def by_hand(clip: bool):
+        torch.manual_seed(1)
+        net = torch.nn.Linear(4, 1)
+        opt = torch.optim.AdamW(net.parameters(), lr=0.1, weight_decay=1e-4)
+        for step in range(4):
+            for group in opt.param_groups:
+                group["lr"] = engine.cosine_lr(step, 4, 0.1, 1e-6, 0)
+            opt.zero_grad()
+            loss_fn(net, {"x": x, "y": y}, True)[0].backward()
+            if clip:
+                torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+            opt.step()
+        return torch.cat([p.detach().flatten() for p in net.parameters()])
+
+    torch.manual_seed(1)
+    net = torch.nn.Linear(4, 1)
+    engine.fit(net, samples, None, loss_fn, tmp_path, engine.FitConfig(epochs=4, batch_size=1, lr=0.1, progress=False,
+                                                                      warmup_fraction=0.0),
+               engine.Runtime(0, 1, torch.device("cpu")), meta={})
+    trained = torch.cat([p.detach().flatten() for p in net.parameters()])
+    torch.testing.assert_close(trained, by_hand(clip=True), rtol=1e-6, atol=1e-7)
+    assert not torch.allclose(trained, by_hand(clip=False), rtol=1e-4, atol=1e-5), "clipping changes nothing here"
+
+
+def test_training_options_reach_the_training_loop():
+    """Every option of the teacher and student commands that shapes training reaches fit: --min-lr, --weight-decay
+    and --seed (batch order) were each one keyword away from being ignored, with their value still recorded in
+    the recipe as if it had been used."""
+    from training.train_teacher import fit_config
+
+    args = _args("b", "o", "c", epochs=7, batch_size=3, lr=0.02, min_lr=0.001, weight_decay=0.3, seed=11, stop_after=2,
+                 select="regl1", amp=True, no_progress=True)
+    cfg = fit_config(args)
+    assert (cfg.epochs, cfg.batch_size, cfg.lr, cfg.min_lr, cfg.weight_decay, cfg.seed, cfg.stop_after, cfg.select,
+            cfg.amp, cfg.progress) == (7, 3, 0.02, 0.001, 0.3, 11, 2, "regl1", True, False)
+
+
+def test_a_student_stopped_and_resumed_trains_the_weights_of_an_uninterrupted_run(bags, teacher_ckpt, tmp_path):
+    """The README promises the same result after a resume, and the teacher's test showed it for a model without
+    dropout or augmentation. A student with dropout, shifts and zooms draws random numbers every step: a resume
+    must restore torch's RNG state, the optimizer and the schedule, and the run must be seeded, or the resumed
+    student differs from the uninterrupted one (and two identical commands give two models)."""
+    student = dict(kind="streaming", ablation="full", alpha=0.5, full_clips=False, teacher=str(teacher_ckpt),
+                   set=["dropout=0.3"], shift=2, zoom=0.2, epochs=2)
+    run_student(_args(bags, tmp_path / "ref", tmp_path / "cache", **student))
+    run_student(_args(bags, tmp_path / "resumed", tmp_path / "cache", stop_after=1, **student))
+    run_student(_args(bags, tmp_path / "resumed", tmp_path / "cache", **student))
+    ref, resumed = (engine.load_checkpoint(tmp_path / name / engine.LAST) for name in ("ref", "resumed"))
+    assert resumed["epoch"] == 2 and resumed["history"] == ref["history"]
+    for key, value in ref["model"].items():
+        torch.testing.assert_close(resumed["model"][key], value, rtol=0, atol=0)
+
+
+def _student_validation(bags, cache, run, teacher_ckpt, val_fraction, seed, alpha, align_weight, regl1_weight,
+                        ablation="full"):
+    """A student run's validation figures recomputed from its last.pt: the first view of each validation
+    instance, full clips, no mirror or reframing, the model in eval mode, all in one batch."""
+    from training.train_teacher import load_teacher, teacher_targets
+
+    model, meta = load_student(run / engine.LAST)
+    ds = data.load_dataset(bags, cache, progress=False)
+    _, val_idx = ds.split(val_fraction, seed)
+    frames = data.resized_videos(ds, tuple(meta["config"]["input_size"]), progress=False)
+    targets = teacher_targets(load_teacher(teacher_ckpt), ds, "cpu")
+    videos = ds.first_view_videos(val_idx)
+    clips = torch.stack([torch.from_numpy(data.as_unit_float(frames[ds.video_loc[j][0]][ds.video_loc[j][1]]))
+                         for j in videos])
+    instances = ds.video_instance[videos]
+    batch = {"masks": clips, "valid": torch.ones(len(videos), 25), "label": torch.tensor(ds.labels[instances]),
+             "target": torch.from_numpy(ds.params_norm[instances]), "mask": torch.from_numpy(ds.param_mask[instances]),
+             "z_t": torch.from_numpy(targets[instances])}
+    with torch.no_grad():
+        loss, logs = student_loss(ablation, alpha, align_weight, regl1_weight)(model.eval(), batch, False)
+    return {"loss": float(loss), **{k: float(v) for k, v in logs.items()}}
+
+
+def test_a_students_figures_are_its_loss_on_unaugmented_validation_clips_with_the_weights_asked_for(
+        bags, teacher_ckpt, tmp_path):
+    """history.json's validation figures (which pick best.pt) are the student's loss on the first view of each
+    held-out instance, whole and as rendered: not mirrored, shifted, zoomed or cut to a prefix as training clips
+    are, not on the training instances, and with the --alpha asked for. The training loss is
+    --align-weight x align + CE + --regl1-weight x RegL1 + the NLL term: weights set on the command line were
+    recorded in the checkpoint even when the loss used the defaults."""
+    from training.models.common import NLL_WEIGHT
+
+    weights = dict(alpha=2.0, align_weight=0.3, regl1_weight=0.7)
+    run_student(_args(bags, tmp_path / "s", tmp_path / "cache", epochs=1, kind="streaming", ablation="full",
+                      full_clips=False, teacher=str(teacher_ckpt), shift=3, zoom=0.3, val_fraction=0.4,
+                      set=["dropout=0.3"], **weights))
+    record = engine.load_checkpoint(tmp_path / "s" / engine.LAST)["history"][0]
+    expected = _student_validation(bags, tmp_path / "cache", tmp_path / "s", teacher_ckpt, 0.4, 0, **weights)
+    for key, value in expected.items():
+        assert record[f"val_{key}"] == pytest.approx(value, rel=1e-5, abs=1e-7), key
+    assert record["train_loss"] == pytest.approx(0.3 * record["train_align"] + record["train_ce"] + 0.7 *
+                                                 record["train_regl1"] + NLL_WEIGHT * record["train_nll"], rel=1e-5)
+
+
+def test_a_teachers_figures_are_its_loss_on_the_validation_instances_untransformed(bags, tmp_path):
+    """The teacher's validation figures are its loss on the held-out instances as simulated: the square
+    symmetries are a training augmentation only, and the held-out part is the smaller one, not trained on."""
+    from training.train_teacher import load_teacher, teacher_loss
+
+    run_teacher(_args(bags, tmp_path / "t", tmp_path / "cache", epochs=1, val_fraction=0.4))
+    record = engine.load_checkpoint(tmp_path / "t" / engine.LAST)["history"][0]
+    teacher = load_teacher(tmp_path / "t" / engine.LAST)
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    train_idx, val_idx = ds.split(0.4, 0)
+    assert len(val_idx) < len(train_idx)
+    trajectories = torch.from_numpy(np.stack([ds.trajectory(i) for i in val_idx]))
+    anchors, neighbours = teacher.tubes(trajectories[:, :1])
+    batch = {"trajectory": trajectories, "anchors": anchors, "neighbours": neighbours,
+             "label": torch.from_numpy(ds.labels[val_idx]), "target": torch.from_numpy(ds.params_norm[val_idx]),
+             "mask": torch.from_numpy(ds.param_mask[val_idx])}
+    with torch.no_grad():
+        loss, logs = teacher_loss(teacher, batch, False)
+    for key, value in {"loss": loss, **logs}.items():
+        assert record[f"val_{key}"] == pytest.approx(float(value), rel=1e-5, abs=1e-7), key
+
+
+def test_training_clips_are_drawn_anew_each_epoch_over_the_documented_ranges(bags, tmp_path):
+    """The streaming student's prefixes span 10..25 frames (the full clip included), about half the clips are
+    mirrored and the others not, shifts reach -PX..+PX in x and y independently and zooms both sides of 1 within
+    [1 - FRAC, 1 + FRAC]; the draws change with the epoch, and validation clips (no augmentation) are never
+    mirrored. A range one short, a mirror never or always taken, or the draws of epoch 0 repeated forever
+    would each leave the batch tests above passing."""
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    frames = data.resized_videos(ds, (32, 32), progress=False)
+    videos = np.arange(ds.num_videos)
+    augmented = VideoSet(ds, videos, frames, None, random_prefix=True, augment=True, seed=3, shift=2, zoom=0.2)
+    plain = VideoSet(ds, videos, frames, None, random_prefix=True, augment=False, seed=3)
+    lengths, views, flips, per_epoch = [], [], [], []
+    for epoch in range(8):
+        augmented.set_epoch(epoch), plain.set_epoch(epoch)
+        items = [augmented[k] for k in range(len(videos))]
+        unaugmented = [plain[k] for k in range(len(videos))]
+        lengths += [int(item["valid"].sum()) for item in items]
+        views += [item["view"] for item in items]
+        for item, other in zip(items, unaugmented):
+            assert torch.equal(item["valid"], other["valid"])
+            if not torch.equal(item["masks"], other["masks"]):
+                assert torch.equal(item["masks"], other["masks"].flip(-1))  # mirrored left-right
+                flips.append(True)
+            else:
+                flips.append(False)
+        per_epoch.append(tuple(lengths[-len(videos):]))
+    assert min(lengths) == 10 and max(lengths) == 25
+    assert 0.3 < np.mean(flips) < 0.7
+    views = torch.stack(views)
+    assert 0.8 <= views[:, 0].min() < 0.9 and 1.1 < views[:, 0].max() <= 1.2
+    for axis in (1, 2):
+        assert set(views[:, axis].tolist()) == {-2.0, -1.0, 0.0, 1.0, 2.0}
+    assert not torch.equal(views[:, 1], views[:, 2])
+    assert len(set(per_epoch)) == len(per_epoch), "an epoch repeated another's prefixes"
+    validation = VideoSet(ds, videos, frames, None, random_prefix=False, augment=False, seed=3)
+    for k in range(len(videos)):
+        s, r = ds.video_loc[k]
+        assert torch.equal(validation[k]["masks"], torch.from_numpy(data.as_unit_float(frames[s][r])))
+
+
+def test_teacher_symmetries_are_drawn_anew_each_epoch_and_only_transformed_items_change(bags, tmp_path):
+    """Every one of the 8 square symmetries is drawn (the last included), the draws change with the epoch, and
+    in a batch mixing the identity with other symmetries each item gets its own: identity items untouched."""
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    teacher = Teacher(TEACHER_PRESETS["tiny"])
+    instances = np.arange(len(ds))
+    augmented = TrajectorySet(ds, instances, True, 5, teacher)
+    draws = []
+    for epoch in range(6):
+        augmented.set_epoch(epoch)
+        draws.append(tuple(int(augmented[k]["sym"]) for k in range(len(instances))))
+    assert set(sum(draws, ())) == set(range(8)) and len(set(draws)) == len(draws)
+    epoch = next(e for e, d in enumerate(draws) if 0 in d and set(d) != {0})
+    augmented.set_epoch(epoch)
+    batch = augmented.collate([augmented[k] for k in range(len(instances))])
+    for k, sym in enumerate(draws[epoch]):
+        raw = torch.from_numpy(ds.trajectory(int(instances[k])))
+        assert torch.equal(batch["trajectory"][k], raw) == (sym == 0)
+
+
+def test_reframe_scales_shifts_by_each_axis_of_a_non_square_image():
+    """--set input_size takes two numbers: on an image wider than tall, a shift of dx pixels in x is dx of the
+    width's pixels, and dy of the height's."""
+    masks = torch.zeros(1, 1, 16, 24)
+    masks[..., 6:10, 10:14] = 1.0
+    expected = torch.zeros_like(masks)
+    expected[..., 7:11, 13:17] = 1.0  # 3 px right, 1 px down
+    assert torch.equal(reframe(masks, torch.tensor([[1.0, 3, 1]])), expected)
+
+
+def test_videos_on_device_copies_every_row_of_every_shard_in_order():
+    """Videos are copied to the device 1024 at a time: shards of more than 1024 videos (the paper split's hold
+    thousands) must arrive whole and in order, rows past the first chunk included."""
+    shards = [np.arange(1030 * 2, dtype=np.float32).reshape(1030, 1, 2, 1), np.full((3, 1, 2, 1), -1.0, np.float32)]
+    on_device = videos_on_device(shards, torch.device("cpu"), progress=False)
+    torch.testing.assert_close(on_device, torch.from_numpy(np.concatenate(shards)), rtol=0, atol=0)
+
+
+def test_a_loaded_teacher_gives_the_same_targets_every_time(bags, tmp_path):
+    """The small and paper teachers train with dropout: the teacher a student distils must be loaded in eval mode,
+    or every call of teacher_targets gives other z_T (dropout noise in the alignment targets)."""
+    from training.train_teacher import load_teacher, teacher_targets
+
+    config = dataclasses.replace(TEACHER_PRESETS["tiny"], dropout=0.5)
+    torch.manual_seed(0)
+    engine.save_checkpoint(tmp_path / "t.pt", {"model": Teacher(config).state_dict(), "meta": {"config": config.to_dict()}})
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    teacher = load_teacher(tmp_path / "t.pt")
+    np.testing.assert_array_equal(teacher_targets(teacher, ds, "cpu"), teacher_targets(teacher, ds, "cpu"))
+
+
+def test_a_resume_under_any_other_training_option_is_refused(bags, teacher_ckpt, tmp_path):
+    """Every option in a student's recipe is checked on resume, each naming its old and new value: the earlier
+    test covers --lr, --seed, --epochs and --select; a changed batch size, learning-rate floor, weight decay,
+    validation fraction, augmentation or loss weight would each have gone on silently as another run."""
+    student = dict(kind="streaming", ablation="full", alpha=0.5, full_clips=False, shift=1, zoom=0.1, epochs=2,
+                   teacher=str(teacher_ckpt))
+    run_student(_args(bags, tmp_path / "s", tmp_path / "cache", stop_after=1, **student))
+    for option, value in (("batch_size", 2), ("min_lr", 1e-4), ("weight_decay", 0.0), ("val_fraction", 0.4),
+                          ("shift", 2), ("zoom", 0.2), ("alpha", 1.0), ("align_weight", 0.5), ("regl1_weight", 0.5)):
+        flag = "--" + option.replace("_", "-")
+        with pytest.raises(ValueError, match=rf"was trained with {flag} \S+; this run asks for {flag} "
+                                             rf"{re.escape(str(value))}\. Resume it"):
+            run_student(_args(bags, tmp_path / "s", tmp_path / "cache", **{**student, option: value}))
+    run_student(_args(bags, tmp_path / "s", tmp_path / "cache", **student))
+    assert engine.load_checkpoint(tmp_path / "s" / engine.LAST)["epoch"] == 2
+
+
+def test_the_stages_train_on_every_augmented_view_and_validate_on_plain_first_views(bags, tmp_path, monkeypatch):
+    """What each command hands its training loop: the teacher trains on the split's training instances under
+    random square symmetries; a student on every camera view of them (not one per instance), with random
+    prefixes (streaming, unless --full-clips: clip students always see whole clips), mirrors and the --shift and
+    --zoom asked for. Validation: the other instances, the first view, whole and untransformed. A training set
+    left unaugmented, cut to one view or given whole clips trains a different model under the same command."""
+    from training import train_student, train_teacher
+
+    handed = {}
+
+    def fit(model, train_set, val_set, *args, **kwargs):
+        handed.update(train=train_set, val=val_set)
+
+    monkeypatch.setattr(train_teacher, "fit", fit)
+    monkeypatch.setattr(train_student, "fit", fit)
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    train_idx, val_idx = ds.split(0.2, 0)
+    run_teacher(_args(bags, tmp_path / "t", tmp_path / "cache"))
+    train, val = handed["train"], handed["val"]
+    assert (list(train.instances), train.augment) == (list(train_idx), True)
+    assert (list(val.instances), val.augment) == (list(val_idx), False)
+    cases = ((dict(kind="streaming", full_clips=False), True), (dict(kind="streaming", full_clips=True), False),
+             (dict(kind="uniformer", full_clips=False), False))
+    for options, prefixes in cases:
+        run_student(_args(bags, tmp_path / "s", tmp_path / "cache", ablation="none", alpha=0.5, shift=3, zoom=0.25,
+                          **options))
+        train, val = handed["train"], handed["val"]
+        assert list(train.videos) == list(ds.videos_of(train_idx)) and len(train.videos) == 2 * len(train_idx)
+        assert (train.random_prefix, train.augment, train.shift, train.zoom) == (prefixes, True, 3, 0.25), options
+        assert list(val.videos) == list(ds.first_view_videos(val_idx))
+        assert (val.random_prefix, val.augment, val.shift, val.zoom) == (False, False, 0, 0.0), options
+
+
+def test_the_teachers_predictions_are_its_own_outputs_for_each_episode(bags, teacher_ckpt, tmp_path):
+    """evaluate-teacher's probabilities are the softmax of the teacher's logits over the three classes for each
+    episode, and its parameters the heads' outputs in SI units, whatever episodes share its batch (a softmax over
+    the batch instead also gives numbers between 0 and 1)."""
+    from ad_sim.materials import PARAMETER_NAMES, denormalise
+
+    from training.train_teacher import load_teacher, teacher_predictions
+
+    ds = data.load_dataset(bags, tmp_path / "cache", progress=False)
+    teacher = load_teacher(teacher_ckpt)
+    predictions = teacher_predictions(teacher, ds, "cpu", batch_size=4)
+    assert predictions.episode_ids == ds.episode_ids
+    for k in (0, 5, 8):  # in the first, second and last (partial) batch
+        with torch.no_grad():
+            out = teacher(torch.from_numpy(ds.trajectory(k))[None])
+        np.testing.assert_allclose(predictions.probabilities[k], torch.softmax(out["logits"][0], -1).numpy(), rtol=1e-4,
+                                   atol=1e-6)
+        si = [denormalise(name, out["params"][0, j].item()) for j, name in enumerate(PARAMETER_NAMES)]
+        np.testing.assert_allclose(predictions.pred_params[k], si, rtol=1e-4)

@@ -112,6 +112,7 @@ def test_pipeline_end_to_end_and_resume(tmp_path, capsys):
     assert model.info.frame_encoder.name == "default.frame.onnx"
     out = capsys.readouterr().out
     assert "| 25 |" in out and "| 15 |" in out  # the paper table with temporal-OOD rows was printed
+    _assert_summary_figures_are_each_splits(summary, tmp_path / "run", data / "tiny", tmp_path / "cache")
     # Re-running finds every stage done: no epoch is trained again.
     assert main(args) == 0
     assert "epoch=1" not in capsys.readouterr().out
@@ -321,3 +322,65 @@ def test_a_data_seed_that_recorded_bags_cannot_confirm_is_said_naming_them(tmp_p
     assert main(args) == 130
     assert "--data-seed" not in capsys.readouterr().err
     assert pipeline.check_data_seed(data / "tiny" / "train", 3) == [recorded[0]]
+
+
+def _assert_summary_figures_are_each_splits(summary: dict, run: Path, data: Path, cache: Path) -> None:
+    """summary.json's seen and unseen figures are each split's own: the teacher's are its predictions on that
+    split's bags, recomputed here, and the full student's report on a split scored that split's episodes and
+    gives its summary entries (a split's bags swapped for the other's would go unnoticed by their keys alone)."""
+    from ad_estimator.metrics import compute_metrics
+    from training import data as training_data
+    from training.train_teacher import load_teacher, teacher_predictions
+
+    teacher = load_teacher(run / "teacher" / "best.pt")
+    for split in ("seen", "unseen"):
+        ds = training_data.load_dataset(data / split, cache, progress=False)
+        expected = compute_metrics(teacher_predictions(teacher, ds, "cpu"))
+        for key in ("accuracy", "regl1"):
+            assert summary["teacher_metrics"][split][key] == pytest.approx(expected[key], rel=1e-6), (split, key)
+        report = run / "reports" / f"streaming_full_{split}"
+        scored = json.loads((report / "predictions.json").read_text())["frames"]["25"]
+        assert sorted(e["episode_id"] for e in scored) == sorted(ds.episode_ids), split
+        metrics = json.loads((report / "metrics.json").read_text())["frames"]["25"]
+        for key in ("accuracy", "regl1"):
+            assert summary["students"]["full"][f"{split}_{key}"] == pytest.approx(metrics[key], rel=1e-9), (split, key)
+
+
+def test_the_pipeline_trains_each_stage_with_the_sizes_recipe_and_its_own_options(tmp_path, monkeypatch):
+    """The per-size recipe (epochs, batch sizes, learning rate) and the pipeline's --seed, --val-fraction and
+    --kind reach the teacher and the students. The end-to-end test runs `tiny` with explicit epochs, seed 0 and
+    the streaming student, where a default of the wrong stage, the stages' own seed 0 or a student of the default
+    kind would give the same run: here `small`, seed 3 and the UniFormer-style student."""
+    import torch
+
+    from training import engine, train_student, train_teacher
+    from training.models.teacher import TEACHER_PRESETS, Teacher
+
+    data = tmp_path / "bags"
+    for i, split in enumerate(("train", "seen", "unseen")):
+        write_synthetic_bag(data / "small" / split / "recorded", 3, views=1, seed=10 + i, split=split)
+    teacher = tmp_path / "teacher.pt"
+    engine.save_checkpoint(teacher, {"model": Teacher(TEACHER_PRESETS["tiny"]).state_dict(),
+                                     "meta": {"config": TEACHER_PRESETS["tiny"].to_dict()}})
+    stages = {}
+
+    def teacher_stage(args):
+        stages["teacher"] = args
+        return teacher
+
+    def student_stage(args):
+        stages["student"] = args
+        raise KeyboardInterrupt  # (exit 130): the students' training is not what this test is about
+
+    monkeypatch.setattr(train_teacher, "run", teacher_stage)
+    monkeypatch.setattr(train_student, "run", student_stage)
+    assert main(["pipeline", "--size", "small", "--data", str(data), "--out", str(tmp_path / "run"), "--cache",
+                 str(tmp_path / "cache"), "--seed", "3", "--val-fraction", "0.3", "--kind", "uniformer",
+                 "--device", "cpu", "--no-progress"]) == 130
+    shared = dict(size="small", lr=5e-4, seed=3, val_fraction=0.3, device="cpu", cache=str(tmp_path / "cache"))
+    for stage, expected in (("teacher", dict(epochs=80, batch_size=16, out=str(tmp_path / "run" / "teacher"))),
+                            ("student", dict(epochs=20, batch_size=32, kind="uniformer", ablation="full",
+                                             teacher=str(teacher), out=str(tmp_path / "run" / "uniformer_full")))):
+        args = vars(stages[stage])
+        assert {key: args[key] for key in {**shared, **expected}} == {**shared, **expected}, stage
+        assert args["bags"] == str(data / "small" / "train")

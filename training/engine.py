@@ -7,6 +7,7 @@ torch.load(weights_only=True).
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import math
 import os
@@ -57,6 +58,11 @@ def init_runtime(device: str = "auto") -> Runtime:
         else:
             dev = torch.device("cpu")
         if not dist.is_initialized():
+            # DistributedDataParallel imports torch._dynamo; imported once a process group exists, it keeps
+            # references to it that destroy_process_group cannot drop, so the group's threads outlive
+            # close_runtime and are torn down at exit, where a rank can abort ("terminate called without an
+            # active exception", after its work is saved). Imported before, it holds none.
+            importlib.import_module("torch._dynamo")
             # device_id binds NCCL to this rank's GPU (else it guesses from the rank, and warns).
             if dev.type == "cuda":
                 dist.init_process_group("nccl", device_id=dev)
@@ -67,8 +73,8 @@ def init_runtime(device: str = "auto") -> Runtime:
 
 
 def close_runtime() -> None:
-    """Ends the process group, if any. Without it a rank can abort at exit while gloo's threads
-    are still alive ("terminate called without an active exception")."""
+    """Ends the process group, if any, and with it its threads (see init_runtime). Without it a rank can
+    abort at exit while gloo's threads are still alive ("terminate called without an active exception")."""
     if dist.is_available() and dist.is_initialized():
         dist.destroy_process_group()
 
