@@ -133,6 +133,57 @@ def test_sigterm_finalises_and_kill9_keeps_flushed_chunks(rclpy_context, ros_dom
     assert sorted((t, s) for t, s, _ in recovered) == sorted((t, s) for t, s, _ in items)
 
 
+SLOW_RECORDER = """
+import sys, time
+import ad_sim.rosbag
+
+write, flush = ad_sim.rosbag.BagWriter.write, ad_sim.rosbag.BagWriter.flush
+
+def slow_write(self, *args, **kwargs):  # a recorder behind the publisher, as on a busy machine
+    time.sleep(0.01)
+    return write(self, *args, **kwargs)
+
+def slow_flush(self):  # and a chunk flush that outlasts the drain's DRAIN_IDLE (0.3 s)
+    time.sleep(0.5)
+    return flush(self)
+
+ad_sim.rosbag.BagWriter.write, ad_sim.rosbag.BagWriter.flush = slow_write, slow_flush
+from ad_sim.record_node import main
+main(sys.argv)
+"""
+
+
+def test_a_slow_flush_in_the_drain_loses_no_acknowledged_message(rclpy_context, ros_domain_id, tmp_path):
+    """SIGINT while the recorder is behind (every message acknowledged, many not yet taken): a flush that took
+    longer than DRAIN_IDLE during the drain counted as quiet input, and the bag was closed without the messages
+    still waiting in the subscriptions (here 21 to 36 of the 76, in 4 runs of 4)."""
+    import os
+    import subprocess
+    import sys
+
+    from ros_procs import REPO_ROOT
+
+    items = episode_items(count=1)  # 76 messages, 0.76 s behind: within DRAIN_MAX (2 s)
+    publisher = Publisher(rclpy_context)
+    log = tmp_path / "record.log"
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id), PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0")
+    recorder = subprocess.Popen([sys.executable, "-c", SLOW_RECORDER, "--ros-args", "-p", f"output:={tmp_path / 'bag'}",
+                                 "-p", "flush_period:=0.2"], stdout=log.open("w"), stderr=subprocess.STDOUT, env=env,
+                                cwd=REPO_ROOT)
+    try:
+        publisher.wait_for_subscribers()
+        published = publisher.publish(items)
+        publisher.sim.wait_for_acks()
+        assert stop(recorder, signal.SIGINT) == 0
+    finally:
+        if recorder.poll() is None:
+            recorder.kill()
+            recorder.wait()
+        publisher.close()
+    assert recorder_counts(log.read_text()) == (published, published), log.read_text()
+    assert len(list(BagReader(tmp_path / "bag"))) == published
+
+
 def test_recorder_records_only_the_topics_asked_for(rclpy_context, ros_domain_id, tmp_path):
     """An explicit topic list, including a foreign type without header (log time = receive time)."""
     from std_msgs.msg import String

@@ -241,14 +241,19 @@ def main(args: list[str] | None = None) -> None:
             executor.add_node(node)
             while not stop.is_set() and node.error is None:
                 executor.spin_once(timeout_sec=0.1)
-            # Take what already arrived before closing the bag.
+            # Take what already arrived before closing the bag, until DRAIN_IDLE s pass with nothing new. The timers
+            # stop first (close() writes the last chunk), and the drain ends only after a wait that took nothing: a
+            # slow flush on a busy machine passed for quiet input and closed the bag on messages still waiting.
+            for timer in node.timers:
+                timer.cancel()
             idle_since, seen = time.monotonic(), sum(node.received.values())
             give_up = idle_since + DRAIN_MAX
-            while (time.monotonic() - idle_since < DRAIN_IDLE and time.monotonic() < give_up and not stop_now.is_set()
-                   and node.error is None):
+            while time.monotonic() < give_up and not stop_now.is_set() and node.error is None:
                 executor.spin_once(timeout_sec=0.05)
                 if sum(node.received.values()) != seen:
                     idle_since, seen = time.monotonic(), sum(node.received.values())
+                elif time.monotonic() - idle_since >= DRAIN_IDLE:
+                    break
         finally:  # after an error too: closing writes the chunk in memory and the summaries readers need
             node.close()
         if node.error is not None:
