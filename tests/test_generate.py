@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -149,16 +150,23 @@ def test_a_shard_folder_with_files_generate_does_not_write_is_not_deleted(tmp_pa
     assert (shard / "unseen-0of1_2.mcap" / "mine.txt").read_text() == "mine\n"
 
 
+def _interrupt_once_under_way(process, shard: Path) -> str:
+    """SIGINT to a running generate once `shard` is under way (its metadata.yaml written); its output, once it has
+    exited with 130."""
+    deadline = time.monotonic() + 300
+    while not (shard / "metadata.yaml").exists():
+        assert process.poll() is None and time.monotonic() < deadline, process.stdout.read()
+        time.sleep(0.02)
+    process.send_signal(signal.SIGINT)
+    output = process.communicate(timeout=60)[0]
+    assert process.returncode == 130, output
+    return output
+
+
 def test_ctrl_c_says_what_to_do_without_a_traceback(tmp_path):
     interrupted = generate("--size", "tiny", "--split", "unseen", "--limit", "2", "--batch", "1",
                            "--out", str(tmp_path))
-    deadline = time.monotonic() + 300
-    while not (tmp_path / "unseen-0of1" / "metadata.yaml").exists():  # the shard is under way
-        assert interrupted.poll() is None and time.monotonic() < deadline, interrupted.stdout.read()
-        time.sleep(0.02)
-    interrupted.send_signal(signal.SIGINT)
-    output = interrupted.communicate(timeout=60)[0]
-    assert interrupted.returncode == 130, output
+    output = _interrupt_once_under_way(interrupted, tmp_path / "unseen-0of1")
     assert "Traceback" not in output
     assert output.strip().splitlines()[-1] == (f"interrupted: {tmp_path / 'unseen-0of1'} is unfinished; run the same "
                                                "command again to redo it (finished shards are kept)")
@@ -172,13 +180,7 @@ def test_ctrl_c_in_a_later_shard_names_that_shard(tmp_path):
     interrupted = generate("--size", "tiny", "--split", "unseen", "--limit", "2", "--shards", "2", "--batch", "1",
                            "--skip-particles", "--out", str(tmp_path))
     second = tmp_path / "unseen-1of2"
-    deadline = time.monotonic() + 300
-    while not (second / "metadata.yaml").exists():  # the first shard done, the second under way
-        assert interrupted.poll() is None and time.monotonic() < deadline, interrupted.stdout.read()
-        time.sleep(0.02)
-    interrupted.send_signal(signal.SIGINT)
-    output = interrupted.communicate(timeout=60)[0]
-    assert interrupted.returncode == 130, output
+    output = _interrupt_once_under_way(interrupted, second)  # the first shard done, the second under way
     assert output.strip().splitlines()[-1] == (f"interrupted: {second} is unfinished; run the same command again to "
                                                "redo it (finished shards are kept)")
     assert (tmp_path / "unseen-0of2" / DONE_MARKER).is_file() and not (second / DONE_MARKER).exists()

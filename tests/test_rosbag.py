@@ -1220,6 +1220,12 @@ def test_mcap_files_of_other_writers_without_optional_parts_read_as_they_are(tmp
     assert reader.problems == []
 
 
+def _chunks_in_file_order(file: Path) -> list:
+    """The chunk indexes of an MCAP file's summary, in the order of the chunks in the file."""
+    with open(file, "rb") as f:
+        return sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+
+
 def test_a_summary_without_crc_whose_chunk_index_points_past_the_data_section_is_not_used(tmp_path):
     """Without a CRC (a writer that computes none), a damaged chunk index is found by where it points: one past the
     data section (here into the summary) makes the summary unusable, said as such, and recovering reads the data
@@ -1229,8 +1235,7 @@ def test_a_summary_without_crc_whose_chunk_index_points_past_the_data_section_is
 
     file = tmp_path / "other.mcap"
     in_order = _write_other_mcap(file, OTHER_STAMPS, enable_crcs=False, index_types=IndexType.CHUNK)
-    with open(file, "rb") as f:
-        last = max(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    last = _chunks_in_file_order(file)[-1]
     data = bytearray(file.read_bytes())
     footer = len(data) - 8 - 29
     summary_start = int.from_bytes(data[footer + 9 : footer + 17], "little")
@@ -1257,8 +1262,7 @@ def test_a_data_end_or_footer_opcode_between_chunks_is_named_and_the_chunks_afte
     path = tmp_path / "bag"
     written = write_fabricated_bag(path, episodes=1, chunk_size=50_000)
     file = path / "bag_0.mcap"
-    with open(file, "rb") as f:
-        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    chunks = _chunks_in_file_order(file)
     assert len(chunks) > 4
     damaged = chunks[1].chunk_start_offset + chunks[1].chunk_length  # the message indexes after the second chunk
     data = bytearray(file.read_bytes())
@@ -1282,8 +1286,7 @@ def test_a_writer_killed_between_a_chunk_and_its_message_indexes_loses_no_messag
     path = tmp_path / "killed"
     written = write_fabricated_bag(path, episodes=1, chunk_size=50_000)
     file = path / "killed_0.mcap"
-    with open(file, "rb") as f:
-        last = max(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    last = _chunks_in_file_order(file)[-1]
     cut = last.chunk_start_offset + last.chunk_length
     file.write_bytes(file.read_bytes()[:cut])
     with pytest.warns(UserWarning) as caught:

@@ -553,20 +553,27 @@ def test_validation_shares_count_every_sample_once_over_the_ranks(size, world):
         assert sorted(i for share in shares for i in share) == list(range(size))
 
 
+def _torchrun(*args: str) -> subprocess.CompletedProcess:
+    """`torchrun --standalone --nproc_per_node=2 ARGS` (over gloo, one thread a rank) with this interpreter's
+    path, asserted to exit 0."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
+    result = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", *args],
+                            cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return result
+
+
 @pytest.mark.parametrize("ablation", ["full", "align_only"])
 def test_ddp_two_processes_gloo(bags, teacher_ckpt, tmp_path, ablation):
     """torchrun --nproc_per_node=2 -m training student: both ranks train, rank 0 checkpoints, and the validation
     figures it logs (which pick best.pt) are over the whole validation set, both ranks' shares reduced.
     align_only as well, as scripts/gpu_train.sh runs it: the teacher's predictor it keeps must be frozen, not
     merely left without gradients (DDP then fails at the second step, waiting for their reduction)."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
     out = tmp_path / "ddp"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "training",
-           "student", "--bags", str(bags), "--cache", str(tmp_path / "cache"), "--out", str(out), "--size", "tiny",
-           "--epochs", "1", "--batch-size", "4", "--teacher", str(teacher_ckpt), "--device", "cpu", "--no-progress",
-           "--val-fraction", "0.3", "--ablation", ablation]  # 3 validation instances: 2 on one rank, 1 on the other
-    result = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    # --val-fraction 0.3: 3 validation instances, 2 on one rank and 1 on the other
+    result = _torchrun("-m", "training", "student", "--bags", str(bags), "--cache", str(tmp_path / "cache"), "--out",
+                       str(out), "--size", "tiny", "--epochs", "1", "--batch-size", "4", "--teacher", str(teacher_ckpt),
+                       "--device", "cpu", "--no-progress", "--val-fraction", "0.3", "--ablation", ablation)
     state = torch.load(out / engine.LAST, weights_only=True)
     assert state["epoch"] == 1
     # One log line per epoch (rank 0 only).
@@ -583,15 +590,11 @@ def test_ddp_two_processes_gloo(bags, teacher_ckpt, tmp_path, ablation):
 def test_ddp_teacher_with_trajectories_on_device_stops_and_resumes(bags, tmp_path):
     """What the GPU job does (run in time slices under torchrun), over gloo: each rank holds every
     trajectory, builds its batches from it, stops after one epoch and resumes for the second."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
     out = tmp_path / "ddp_teacher"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "training",
-           "teacher", "--bags", str(bags), "--cache", str(tmp_path / "cache"), "--out", str(out), "--size", "tiny",
-           "--epochs", "2", "--batch-size", "2", "--device", "cpu", "--trajectories-on-device", "yes",
-           "--stop-after", "1", "--no-progress"]
     for epoch in (1, 2):
-        result = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
-        assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+        result = _torchrun("-m", "training", "teacher", "--bags", str(bags), "--cache", str(tmp_path / "cache"), "--out",
+                           str(out), "--size", "tiny", "--epochs", "2", "--batch-size", "2", "--device", "cpu",
+                           "--trajectories-on-device", "yes", "--stop-after", "1", "--no-progress")
         assert torch.load(out / engine.LAST, weights_only=True)["epoch"] == epoch
         assert (result.stdout + result.stderr).count(f"teacher epoch={epoch}") == 1
 
@@ -618,13 +621,9 @@ def test_a_rank_ends_its_process_group_threads_before_it_exits(tmp_path):
     exception", exit 1 from torchrun): DistributedDataParallel imported torch._dynamo after the process group
     existed, which then kept it alive past close_runtime, so gloo's threads were torn down at exit. After
     close_runtime a rank that trained under DDP must have no gloo thread left."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
     script = tmp_path / "rank.py"
     script.write_text(_RANK_AFTER_FIT)
-    result = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-                             str(script), str(tmp_path)], cwd=REPO, env=env, capture_output=True, text=True,
-                            timeout=240)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    _torchrun(str(script), str(tmp_path))
     for rank in (0, 1):
         threads = (tmp_path / f"threads{rank}.txt").read_text().splitlines()
         assert threads and not [name for name in threads if "gloo" in name], (rank, threads)
@@ -942,20 +941,21 @@ def test_learning_rate_warms_up_linearly_then_follows_a_cosine_down_to_min_lr():
     assert engine.cosine_lr(0, 100, lr, low, 0) == pytest.approx(lr, rel=1e-12)  # without warm-up
 
 
+def _squared_error(net, batch, train):
+    """A loss_fn for engine.fit on {"x", "y"} samples: the mean squared error, which is also the score."""
+    loss = ((net(batch["x"]) - batch["y"]) ** 2).mean()
+    return loss, {"score": loss.detach()}
+
+
 def test_fit_schedules_the_learning_rate_over_all_its_steps(tmp_path):
     """fit's schedule: warm-up over warmup_fraction of all steps (epochs x batches per epoch), then the cosine;
     an epoch's record holds the rate of its last step."""
     torch.manual_seed(0)
     model = torch.nn.Linear(2, 1)
     samples = [{"x": torch.randn(2), "y": torch.randn(1)} for _ in range(8)]
-
-    def loss_fn(net, batch, train):
-        loss = torch.nn.functional.mse_loss(net(batch["x"]), batch["y"])
-        return loss, {"score": loss.detach()}
-
     cfg = engine.FitConfig(epochs=4, batch_size=2, lr=1e-2, min_lr=1e-4, warmup_fraction=0.25, progress=False)
     rt = engine.Runtime(0, 1, torch.device("cpu"))
-    history = engine.fit(model, samples, samples[:2], loss_fn, tmp_path, cfg, rt, meta={})["history"]
+    history = engine.fit(model, samples, samples[:2], _squared_error, tmp_path, cfg, rt, meta={})["history"]
     # 4 batches an epoch, 16 steps, 4 of warm-up: epoch e ends with step 4e - 1
     def expected(step):
         if step < 4:
@@ -1000,8 +1000,7 @@ def _toy_fit(out, train, val, make=_mlp, seen=None, **cfg):
     def loss_fn(net, batch, train):
         if train and seen is not None:
             seen.append(batch["i"].tolist())
-        loss = ((net(batch["x"]) - batch["y"]) ** 2).mean()
-        return loss, {"score": loss.detach(), "regl1": loss.detach()}
+        return _squared_error(net, batch, train)
 
     config = engine.FitConfig(**{"epochs": 3, "batch_size": 4, "lr": 1e-2, "progress": False, **cfg})
     return engine.fit(model, train, val, loss_fn, out, config, engine.Runtime(0, 1, torch.device("cpu")), meta={}), model
@@ -1077,10 +1076,6 @@ def test_each_update_is_adamw_on_the_gradient_clipped_to_grad_clip(tmp_path):
     x, y = torch.randn(1, 4) * 30, torch.tensor([[50.0]])  # gradients far above norm 1
     samples = [{"x": x[0], "y": y[0]}]
 
-    def loss_fn(net, batch, train):
-        loss = ((net(batch["x"]) - batch["y"]) ** 2).mean()
-        return loss, {"score": loss.detach()}
-
     def by_hand(clip: bool):
         torch.manual_seed(1)
         net = torch.nn.Linear(4, 1)
@@ -1089,7 +1084,7 @@ def test_each_update_is_adamw_on_the_gradient_clipped_to_grad_clip(tmp_path):
             for group in opt.param_groups:
                 group["lr"] = engine.cosine_lr(step, 4, 0.1, 1e-6, 0)
             opt.zero_grad()
-            loss_fn(net, {"x": x, "y": y}, True)[0].backward()
+            _squared_error(net, {"x": x, "y": y}, True)[0].backward()
             if clip:
                 torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
             opt.step()
@@ -1097,7 +1092,7 @@ def test_each_update_is_adamw_on_the_gradient_clipped_to_grad_clip(tmp_path):
 
     torch.manual_seed(1)
     net = torch.nn.Linear(4, 1)
-    engine.fit(net, samples, None, loss_fn, tmp_path, engine.FitConfig(epochs=4, batch_size=1, lr=0.1, progress=False,
+    engine.fit(net, samples, None, _squared_error, tmp_path, engine.FitConfig(epochs=4, batch_size=1, lr=0.1, progress=False,
                                                                       warmup_fraction=0.0),
                engine.Runtime(0, 1, torch.device("cpu")), meta={})
     trained = torch.cat([p.detach().flatten() for p in net.parameters()])
