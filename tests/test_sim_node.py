@@ -520,3 +520,23 @@ def test_unknown_arguments_are_a_usage_error():
         assert result.returncode == 2, result.stderr
         assert "unrecognized arguments: --bogus" in result.stderr
         assert "output:=x" not in result.stderr  # ROS arguments are the node's, not argparse's
+
+
+def test_a_ctrl_c_python_swallows_during_the_imports_still_stops_the_start():
+    """A CI run saw `ad_sim record` run on for 60 s after a Ctrl-C during its imports: the KeyboardInterrupt was
+    raised in importlib's module-lock weakref callback, where Python prints "Exception ignored in ..." and goes on.
+    quiet_interrupt remembers the signal, and the start stops when the imports end, as for any Ctrl-C there."""
+    import os
+    import signal
+
+    from ad_sim.dds import StartInterrupted, quiet_interrupt
+
+    class SignalledWhileDeleted:
+        def __del__(self):  # a KeyboardInterrupt raised in here is printed and swallowed
+            os.kill(os.getpid(), signal.SIGINT)
+            sum(range(10_000))  # Python runs the handler here, between bytecodes
+
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(StartInterrupted), quiet_interrupt("prog"):
+        SignalledWhileDeleted()
+    assert signal.getsignal(signal.SIGINT) is before

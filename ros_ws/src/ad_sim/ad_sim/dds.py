@@ -15,7 +15,9 @@ import contextlib
 import difflib
 import importlib
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -43,9 +45,22 @@ def quiet_interrupt(prog: str):
     """Around a node executable's imports (rclpy, numpy, ...: most of its first second), before its main() installs
     its signal handlers: a Ctrl-C there, which printed Python's KeyboardInterrupt traceback, exits with one line on
     stderr and status 0, as a Ctrl-C the node handles does (StartInterrupted). One in the initialisation of a C
-    extension (onnxruntime's, rclpy's) comes out of its import as an ImportError that the KeyboardInterrupt caused."""
+    extension (onnxruntime's, rclpy's) comes out of its import as an ImportError that the KeyboardInterrupt caused.
+    One whose KeyboardInterrupt Python swallows (raised in a __del__ or a weakref callback, as importlib's module
+    locks have: "Exception ignored in ...") is remembered and stops the start when the imports end: it was lost, and
+    the node ran on deaf to the Ctrl-C it had been sent."""
+    interrupted = []
+
+    def on_sigint(signum, frame):
+        interrupted.append(signum)
+        raise KeyboardInterrupt
+
+    main_thread = threading.current_thread() is threading.main_thread()  # where Python runs signal handlers
+    previous = signal.signal(signal.SIGINT, on_sigint) if main_thread else None
     try:
         yield
+        if interrupted:
+            raise KeyboardInterrupt
     except BaseException as exc:
         cause = exc
         while cause is not None and not isinstance(cause, KeyboardInterrupt):
@@ -54,6 +69,9 @@ def quiet_interrupt(prog: str):
             raise
         print(f"{prog}: interrupted while starting", file=sys.stderr, flush=True)
         raise StartInterrupted(0) from None
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGINT, previous)
 
 
 def use_fast_heartbeat() -> None:
